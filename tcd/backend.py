@@ -1,0 +1,70 @@
+"""One switch for Taichi backend and floating-point precision.
+
+`init(arch, precision)` calls `ti.init` exactly once per process and fixes the real type used by
+every field tcd allocates (`backend.real()`). Kernels use Taichi's `default_fp`, which `init`
+sets to the same type, so no module spells `ti.f32` or `ti.f64` itself.
+"""
+from __future__ import annotations
+
+import taichi as ti
+
+ARCHS = ("cpu", "gpu")
+PRECISIONS = ("f64", "f32")
+
+_state = {"arch": None, "precision": None}
+
+
+def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False) -> None:
+    """Initialise Taichi for `arch` ("cpu" or "gpu") and `precision` ("f64" or "f32").
+
+    A second call with the same settings is a no-op; a call with different settings raises,
+    because Taichi cannot be re-initialised safely once fields exist.
+    """
+    if arch not in ARCHS:
+        raise ValueError(f"unknown arch {arch!r}: expected one of {ARCHS}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown precision {precision!r}: expected one of {PRECISIONS}")
+    if _state["arch"] is not None:
+        if (_state["arch"], _state["precision"]) != (arch, precision):
+            raise RuntimeError(
+                f"tcd already initialised with arch={_state['arch']}, precision={_state['precision']};"
+                f" cannot switch to arch={arch}, precision={precision} in the same process")
+        return
+    fp = ti.f64 if precision == "f64" else ti.f32
+    ti_arch = ti.cpu if arch == "cpu" else ti.gpu
+    ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
+            offline_cache=True, log_level=ti.WARN)
+    _state["arch"], _state["precision"] = arch, precision
+    if arch == "gpu" and ti.lang.impl.current_cfg().arch == ti.cpu:
+        raise RuntimeError("arch='gpu' requested but Taichi found no GPU backend")
+
+
+def initialized() -> bool:
+    return _state["arch"] is not None
+
+
+def arch() -> str:
+    _require()
+    return _state["arch"]
+
+
+def precision() -> str:
+    _require()
+    return _state["precision"]
+
+
+def real():
+    """The Taichi real type chosen by `init` (ti.f64 or ti.f32)."""
+    _require()
+    return ti.f64 if _state["precision"] == "f64" else ti.f32
+
+
+def numpy_real():
+    import numpy as np
+    _require()
+    return np.float64 if _state["precision"] == "f64" else np.float32
+
+
+def _require() -> None:
+    if _state["arch"] is None:
+        raise RuntimeError("call tcd.init(arch, precision) before using the engine")
