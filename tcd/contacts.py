@@ -1,0 +1,240 @@
+"""Broad phase (grid hashing) and contact building.
+
+Broad phase: every particle is inserted into each grid cell its bounding box, enlarged by half
+the alert distance, overlaps (count, serial scan, scatter). A large sphere thus spans several
+small cells, which keeps the cost near-linear for the 8:1 size ratio of asphalt mixtures. A pair
+(i, j), i < j, is examined only from the first cell common to both boxes, so it is found once.
+Cells outside the grid are clamped to its border: still correct, only slower.
+
+Contact building is two-pass per particle (count, scan, fill), then each particle's partner list
+is sorted, which makes the contact order canonical (i ascending, j ascending, walls last) and
+independent of thread scheduling. Warm start: each contact looks up its pair in the previous
+step's CSR list and starts from that impulse.
+"""
+
+import taichi as ti
+
+from .state import Bonds, Contacts, Grid, Particles, WallFields
+
+PLANE, CYLINDER = 0, 1
+
+
+@ti.func
+def cell_of(g: ti.template(), p):
+    c = ti.Vector([0, 0, 0])
+    for a in ti.static(range(3)):
+        k = ti.cast(ti.floor((p[a] - g.origin[a]) * g.inv_cell), ti.i32)
+        c[a] = ti.min(ti.max(k, 0), g.dims[a] - 1)
+    return c
+
+
+@ti.func
+def cell_index(g: ti.template(), c):
+    return (c[0] * g.dims[1] + c[1]) * g.dims[2] + c[2]
+
+
+@ti.func
+def box_cells(g: ti.template(), p: ti.template(), i, half_alert):
+    e = p.radius[i] + half_alert
+    return cell_of(g, p.x[i] - e), cell_of(g, p.x[i] + e)
+
+
+@ti.kernel
+def grid_count(p: ti.template(), g: ti.template(), half_alert: float):
+    for c in range(g.ncells):
+        g.cell_count[c] = 0
+    for i in range(p.n):
+        lo, hi = box_cells(g, p, i, half_alert)
+        for cx in range(lo[0], hi[0] + 1):
+            for cy in range(lo[1], hi[1] + 1):
+                for cz in range(lo[2], hi[2] + 1):
+                    ti.atomic_add(g.cell_count[cell_index(g, ti.Vector([cx, cy, cz]))], 1)
+
+
+@ti.kernel
+def exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32) -> ti.i32:
+    """start[k] = sum(count[:k]) for k <= n (serial: one pass, no atomics)."""
+    s = 0
+    ti.loop_config(serialize=True)
+    for k in range(n):
+        start[k] = s
+        s += count[k]
+    start[n] = s
+    return s
+
+
+@ti.kernel
+def grid_scatter(p: ti.template(), g: ti.template(), half_alert: float):
+    for c in range(g.ncells):
+        g.cell_count[c] = 0
+    for i in range(p.n):
+        lo, hi = box_cells(g, p, i, half_alert)
+        for cx in range(lo[0], hi[0] + 1):
+            for cy in range(lo[1], hi[1] + 1):
+                for cz in range(lo[2], hi[2] + 1):
+                    c = cell_index(g, ti.Vector([cx, cy, cz]))
+                    slot = ti.atomic_add(g.cell_count[c], 1)
+                    g.items[g.cell_start[c] + slot] = i
+
+
+@ti.func
+def wall_geometry(wl: ti.template(), k, x, r):
+    """Gap (m) between sphere (x, r) and wall k, normal from the sphere to the wall, and
+    whether the sphere is within the wall's extent."""
+    n = ti.Vector([0.0, 0.0, 0.0])
+    gap = 1e30
+    valid = 0
+    d = wl.direction[k]
+    rel = x - wl.point[k]
+    if wl.kind[k] == PLANE:
+        gap = rel.dot(d) - r
+        n = -d
+        valid = 1
+    else:
+        s = rel.dot(d)
+        if s >= wl.lo[k] - r and s <= wl.hi[k] + r:
+            perp = rel - s * d
+            rho = perp.norm()
+            if rho > 0.0:
+                n = perp / rho
+                gap = wl.radius[k] - rho - r
+                valid = 1
+    return gap, n, valid
+
+
+@ti.func
+def bonded_intact(bd: ti.template(), i, j):
+    found = 0
+    for k in range(bd.start[i], bd.start[i + 1]):
+        if bd.j[k] == j and bd.state[k] == 0:
+            found = 1
+    return found
+
+
+@ti.func
+def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo_i, half_alert, alert):
+    """1 if pair (i, j) is seen from cell c for the first time and is within the alert distance."""
+    ok = 0
+    lo_j, hi_j = box_cells(g, p, j, half_alert)
+    first = ti.max(lo_i, lo_j)
+    if first[0] == c[0] and first[1] == c[1] and first[2] == c[2]:
+        gap = (p.x[j] - p.x[i]).norm() - p.radius[i] - p.radius[j]
+        if gap < alert:
+            if bonded_intact(bd, i, j) == 0:
+                ok = 1
+    return ok
+
+
+@ti.kernel
+def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
+                  ct: ti.template(), half_alert: float, alert: float):
+    for i in range(p.n):
+        lo, hi = box_cells(g, p, i, half_alert)
+        m = 0
+        for cx in range(lo[0], hi[0] + 1):
+            for cy in range(lo[1], hi[1] + 1):
+                for cz in range(lo[2], hi[2] + 1):
+                    c = ti.Vector([cx, cy, cz])
+                    ci = cell_index(g, c)
+                    for s in range(g.cell_start[ci], g.cell_start[ci] + g.cell_count[ci]):
+                        j = g.items[s]
+                        if j > i:
+                            m += candidate(p, g, bd, i, j, c, lo, half_alert, alert)
+        for k in range(wl.count[None]):
+            gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
+            if valid == 1 and gap < alert:
+                m += 1
+        ct.count[i] = m
+
+
+@ti.kernel
+def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
+                 ct: ti.template(), half_alert: float, alert: float):
+    for i in range(p.n):
+        lo, hi = box_cells(g, p, i, half_alert)
+        base = ct.start[i]
+        m = 0
+        for cx in range(lo[0], hi[0] + 1):
+            for cy in range(lo[1], hi[1] + 1):
+                for cz in range(lo[2], hi[2] + 1):
+                    c = ti.Vector([cx, cy, cz])
+                    ci = cell_index(g, c)
+                    for s in range(g.cell_start[ci], g.cell_start[ci] + g.cell_count[ci]):
+                        j = g.items[s]
+                        if j > i:
+                            if candidate(p, g, bd, i, j, c, lo, half_alert, alert) == 1:
+                                ct.j[base + m] = j
+                                m += 1
+        # insertion sort of the particle partners: canonical order whatever the cell order
+        for a in range(1, m):
+            key = ct.j[base + a]
+            b = a - 1
+            while b >= 0 and ct.j[base + b] > key:
+                ct.j[base + b + 1] = ct.j[base + b]
+                b -= 1
+            ct.j[base + b + 1] = key
+        for k in range(wl.count[None]):
+            gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
+            if valid == 1 and gap < alert:
+                ct.j[base + m] = p.n + k
+                m += 1
+        for a in range(m):
+            ct.i[base + a] = i
+
+
+@ti.kernel
+def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float,
+                     theta: float, mu: float):
+    """Frame, gap at the predicted configuration, Delassus diagonal, friction, warm start."""
+    for k in range(ct.total[None]):
+        i, j = ct.i[k], ct.j[k]
+        ri = p.radius[i]
+        n = ti.Vector([0.0, 0.0, 1.0])
+        gap = 0.0
+        rj = 0.0
+        vj = ti.Vector([0.0, 0.0, 0.0])
+        wj = ti.Vector([0.0, 0.0, 0.0])
+        im_j = 0.0
+        ii_j = 0.0
+        f = mu
+        if j < p.n:
+            d = p.x[j] - p.x[i]
+            dist = d.norm()
+            if dist > 0.0:
+                n = d / dist
+            rj = p.radius[j]
+            gap = dist - ri - rj
+            vj, wj = p.v_old[j], p.w_old[j]
+            im_j, ii_j = p.inv_mass[j], p.inv_inertia[j]
+        else:
+            kw = j - p.n
+            gap, n, valid = wall_geometry(wl, kw, p.x[i], ri)
+            vj = wl.velocity[kw]
+            f = wl.friction[kw]
+        u = (vj + wj.cross(-rj * n)) - (p.v_old[i] + p.w_old[i].cross(ri * n))
+        g_beg = gap + (1.0 - theta) * h * u.dot(n)
+        ct.normal[k] = n
+        ct.gap[k] = g_beg
+        # existing overlap is not corrected (no energy injected): target end gap max(g_beg, 0)
+        ct.rhs[k] = ti.max(g_beg, 0.0) / (theta * h)
+        ct.wnn[k] = p.inv_mass[i] + im_j
+        ct.wtt[k] = p.inv_mass[i] + im_j + ri * ri * p.inv_inertia[i] + rj * rj * ii_j
+        ct.mu[k] = f
+        r = ti.Vector([0.0, 0.0, 0.0])
+        for q in range(ct.prev_start[i], ct.prev_start[i + 1]):
+            if ct.prev_j[q] == j:
+                r = ct.prev_impulse[q]
+        rn = r.dot(n)
+        if rn < 0.0:
+            r = ti.Vector([0.0, 0.0, 0.0])
+        ct.impulse[k] = r
+
+
+@ti.kernel
+def save_history(ct: ti.template(), n: ti.i32):
+    for k in range(ct.total[None]):
+        ct.prev_j[k] = ct.j[k]
+        ct.prev_impulse[k] = ct.impulse[k]
+    for i in range(n + 1):
+        ct.prev_start[i] = ct.start[i]
+    ct.prev_total[None] = ct.total[None]

@@ -1,0 +1,488 @@
+"""One Contact Dynamics system: particles, walls, contacts, bonds, and the time step.
+
+`Simulation.step()` reads like the algorithm (Moreau-Jean with NLGS, PHYSICS.md section 2):
+    walls: velocity over [t, t+H] from their prescribed motion
+    broad phase (grid) and contacts at the current configuration, warm-started
+    bonds: frame, compliance, displacement terms
+    v_free = v + H M^-1 f ; apply warm-start impulses
+    NLGS sweeps (serial or coloured schedule) until converged
+    bonds: tangential displacement, Burgers history, yield
+    x += H (theta v+ + (1 - theta) v-) ; wall forces ; t += H
+It holds no arithmetic of its own beyond bookkeeping: kernels live in contacts.py / solver.py.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+import taichi as ti
+
+from . import backend, contacts as ck, solver as sk
+from .state import (MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
+                    WallFields, field_bytes)
+from .walls import KINDS, Wall
+
+SCHEDULES = ("auto", "serial", "coloured")
+
+
+class CapacityError(RuntimeError):
+    """A buffer could not hold what the step needs and could not grow."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverSettings:
+    """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the relative
+    impulse change per sweep; max_sweeps; check_every (sweeps between convergence checks);
+    schedule: "serial", "coloured" or "auto" (serial on CPU, coloured on GPU); alert_ratio:
+    alert distance as a fraction of the smallest radius; gravity (m/s^2, vector)."""
+    time_step: float = 2e-4
+    theta: float = 1.0
+    tolerance: float = 1e-4
+    max_sweeps: int = 1000
+    check_every: int = 1
+    schedule: str = "auto"
+    alert_ratio: float = 0.1
+    gravity: tuple = (0.0, 0.0, -9.81)
+
+    def __post_init__(self):
+        if not self.time_step > 0:
+            raise ValueError(f"time_step must be positive, got {self.time_step}")
+        if not 0.5 <= self.theta <= 1.0:
+            raise ValueError(f"theta must be in [0.5, 1], got {self.theta}")
+        if not self.tolerance > 0:
+            raise ValueError(f"tolerance must be positive, got {self.tolerance}")
+        if self.max_sweeps < 1 or self.check_every < 1:
+            raise ValueError("max_sweeps and check_every must be >= 1")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if not self.alert_ratio > 0:
+            raise ValueError(f"alert_ratio must be positive, got {self.alert_ratio}")
+
+
+@dataclasses.dataclass(frozen=True)
+class BondLaw:
+    """Burgers bond parameters (SI) and yield. mode: "paper" (secant K = 1/J(age)) or
+    "burgers" (incremental four-parameter model). Tangential parameters are the normal ones
+    divided by 2 (1 + poisson_ratio)."""
+    mode: str = "paper"
+    maxwell_stiffness: float = 2e6
+    maxwell_viscosity: float = 2e7
+    kelvin_stiffness: float = 2e6
+    kelvin_viscosity: float = 2e7
+    poisson_ratio: float = 0.3
+    yield_stress: float = 2.7e6
+    friction_after_break: float = 0.7
+
+    def __post_init__(self):
+        if self.mode not in ("paper", "burgers"):
+            raise ValueError(f"bond mode must be 'paper' or 'burgers', got {self.mode!r}")
+        for f in ("maxwell_stiffness", "maxwell_viscosity", "kelvin_stiffness", "kelvin_viscosity",
+                  "yield_stress"):
+            if not getattr(self, f) > 0:
+                raise ValueError(f"bond {f} must be positive, got {getattr(self, f)}")
+        if not -1.0 < self.poisson_ratio < 0.5:
+            raise ValueError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
+
+    @property
+    def tangent_factor(self) -> float:
+        return 2.0 * (1.0 + self.poisson_ratio)
+
+
+@dataclasses.dataclass
+class StepRecord:
+    time: float
+    sweeps: int
+    residual: float
+    contacts: int
+    colours: int
+    bonds_intact: int
+
+
+class Simulation:
+    """Rigid spheres between kinematic walls, stepped by Contact Dynamics.
+
+    radius (N,) m, position (N,3) m; density (kg/m^3) or per-particle `mass`; layer (N,) ints;
+    walls: list of `Wall`; friction: particle-particle Coulomb coefficient; domain: (lo, hi)
+    corners (m) of the broad-phase grid (particles outside are clamped to its border cells);
+    cell_size (m) of the grid (default: the smallest diameter plus the alert distance, times 2).
+    `fixed` (N,) bools make particles kinematic (infinite mass, velocity kept).
+    """
+
+    def __init__(self, radius, position, *, walls: Sequence[Wall] = (), density: float = 2600.0,
+                 layer=None, velocity=None, fixed=None, friction: float = 0.7,
+                 settings: SolverSettings = SolverSettings(), bond_law: BondLaw = BondLaw(),
+                 domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
+                 time: float = 0.0):
+        backend._require()
+        radius = np.asarray(radius, dtype=float).reshape(-1)
+        position = np.asarray(position, dtype=float).reshape(-1, 3)
+        n = len(radius)
+        if n == 0:
+            raise ValueError("a simulation needs at least one particle")
+        if position.shape != (n, 3):
+            raise ValueError(f"position must have shape ({n}, 3), got {position.shape}")
+        if not np.all(np.isfinite(radius)) or np.any(radius <= 0):
+            raise ValueError("every particle radius must be positive and finite")
+        if not np.all(np.isfinite(position)):
+            raise ValueError("particle positions must be finite")
+        if not density > 0:
+            raise ValueError(f"density must be positive, got {density}")
+        if friction < 0:
+            raise ValueError(f"friction must be >= 0, got {friction}")
+        self.n = n
+        self.settings = settings
+        self.bond_law = bond_law
+        self.friction = float(friction)
+        self.density = float(density)
+        self.time = float(time)
+        self.step_index = 0
+        self.r_min = float(radius.min())
+        self.alert = settings.alert_ratio * self.r_min
+        self.schedule = settings.schedule
+        if self.schedule == "auto":
+            self.schedule = "serial" if backend.arch() == "cpu" else "coloured"
+
+        self.particles = Particles(n)
+        p = self.particles
+        mass = density * 4.0 / 3.0 * math.pi * radius**3
+        inv_mass = 1.0 / mass
+        inv_inertia = 1.0 / (0.4 * mass * radius**2)
+        if fixed is not None:
+            fixed = np.asarray(fixed, dtype=bool)
+            inv_mass[fixed] = 0.0
+            inv_inertia[fixed] = 0.0
+        dt = backend.numpy_real()
+        p.radius.from_numpy(radius.astype(dt))
+        p.inv_mass.from_numpy(inv_mass.astype(dt))
+        p.inv_inertia.from_numpy(inv_inertia.astype(dt))
+        p.x.from_numpy(position.astype(dt))
+        vel = np.zeros((n, 3)) if velocity is None else np.asarray(velocity, dtype=float)
+        p.v.from_numpy(vel.astype(dt))
+        p.w.from_numpy(np.zeros((n, 3), dt))
+        p.f_ext.from_numpy(np.zeros((n, 3), dt))
+        p.layer.from_numpy(np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
+
+        self.wall_fields = WallFields()
+        self.walls: list[Wall] = []
+        self.set_walls(walls)
+
+        if domain is None:
+            domain = (position.min(axis=0) - radius.max(), position.max(axis=0) + radius.max())
+        self.domain = (np.asarray(domain[0], float), np.asarray(domain[1], float))
+        self.cell_size = float(cell_size) if cell_size else 2.0 * (2.0 * self.r_min + self.alert)
+        self.cell_size = max(self.cell_size, 1e-9)
+        self.grid = self._make_grid(self._grid_capacity_estimate(radius))
+        cap = contact_capacity if contact_capacity else max(64, 8 * n)
+        self.contacts = Contacts(n, cap)
+        self.bonds = Bonds(n, 1)
+        self.bonds.total[None] = 0
+        self.colours = ColourSet(n, cap + 1) if self.schedule == "coloured" else None
+        self.stats = SolverStats()
+        self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
+        self.grow_events: list[str] = []
+
+    # ---------------------------------------------------------------- construction helpers
+    def _make_grid(self, capacity: int) -> Grid:
+        lo, hi = self.domain
+        dims = np.maximum(1, np.ceil((hi - lo) / self.cell_size).astype(int))
+        if int(np.prod(dims)) > 64_000_000:
+            raise ValueError(f"broad-phase grid of {dims.tolist()} cells is too large: enlarge "
+                             f"cell_size or shrink the domain")
+        return Grid(lo, self.cell_size, dims, capacity)
+
+    def _grid_capacity_estimate(self, radius) -> int:
+        span = 2.0 * (radius + self.alert) / self.cell_size + 1.0
+        return int(np.sum(np.ceil(span) ** 3) * 1.1) + 64
+
+    def set_walls(self, walls: Sequence[Wall]) -> None:
+        """Replace the walls (e.g. mould -> split shear box). Wall contacts lose their history."""
+        walls = list(walls)
+        if len(walls) > MAX_WALLS:
+            raise ValueError(f"at most {MAX_WALLS} walls, got {len(walls)}")
+        self.walls = walls
+        self._upload_walls(self.time)
+        if hasattr(self, "contacts"):
+            self._drop_wall_history()
+
+    def _upload_walls(self, t: float) -> None:
+        wf = self.wall_fields
+        h = self.settings.time_step
+        for k, w in enumerate(self.walls):
+            wf.kind[k] = KINDS[w.kind]
+            wf.point[k] = w.position(t).tolist()
+            wf.direction[k] = list(w.direction)
+            wf.radius[k] = w.radius
+            wf.lo[k], wf.hi[k] = w.extent
+            wf.friction[k] = w.friction
+            wf.velocity[k] = w.step_velocity(t, h).tolist()
+        wf.count[None] = len(self.walls)
+
+    def _drop_wall_history(self):
+        ct = self.contacts
+        pj = ct.prev_j.to_numpy()
+        pr = ct.prev_impulse.to_numpy()
+        pr[pj >= self.n] = 0.0
+        ct.prev_impulse.from_numpy(pr)
+
+    # ---------------------------------------------------------------- the time step
+    def step(self, count: int = 1) -> StepRecord:
+        for _ in range(count):
+            self._step()
+        return self.last
+
+    def _step(self) -> None:
+        s = self.settings
+        h, theta = s.time_step, s.theta
+        t_end = self.time + h
+        p, wl, bd = self.particles, self.wall_fields, self.bonds
+        self._upload_walls(self.time)
+        self._build_contacts()
+        ct = self.contacts
+        sk.predict(p, h, *s.gravity)
+        law = self.bond_law
+        mode = sk.MODE_PAPER if law.mode == "paper" else sk.MODE_BURGERS
+        law_args = (mode, law.maxwell_stiffness, law.maxwell_viscosity, law.kelvin_stiffness,
+                    law.kelvin_viscosity, law.tangent_factor)
+        if bd.total[None] > 0:
+            sk.bonds_prepare(p, bd, h, theta, t_end, *law_args)
+        ck.contact_geometry(p, wl, ct, h, theta, self.friction)
+        sk.apply_warm_start(p, ct, bd)
+        if self.schedule == "serial":
+            sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every)
+            colours = 0
+        else:
+            colours = self._solve_coloured()
+        if bd.total[None] > 0:
+            sk.bonds_finish(p, wl, bd, h, theta, t_end, *law_args, law.yield_stress)
+        sk.integrate(p, h, theta)
+        sk.wall_forces(p, wl, ct, h)
+        ck.save_history(ct, self.n)
+        self.time = t_end
+        self.step_index += 1
+        self.last = StepRecord(self.time, int(self.stats.sweeps[None]), float(self.stats.residual[None]),
+                               int(ct.total[None]), colours, self.bonds_intact_count())
+
+    def _solve_coloured(self) -> int:
+        s = self.settings
+        p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
+        need = ct.capacity + bd.capacity
+        if self.colours is None or self.colours.capacity < need:
+            self.colours = ColourSet(self.n, need)
+        cs = self.colours
+        sk.colour_greedy(self.n, ct, bd, cs, self.stats)
+        if self.stats.colour_overflow[None]:
+            raise CapacityError("contact colouring needs more than "
+                                f"{sk.MAX_COLOURS} colours (a body with that many contacts)")
+        ncol = int(self.stats.colours[None])
+        items = int(bd.total[None] + ct.total[None])
+        sweeps, residual = 0, 0.0
+        while True:
+            for c in range(ncol):
+                sk.solve_colour(p, wl, ct, bd, cs, c)
+            sweeps += 1
+            if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
+                residual = sk.sweep_residual(cs, items)
+                if residual <= s.tolerance or sweeps >= s.max_sweeps:
+                    break
+        self.stats.sweeps[None] = sweeps
+        self.stats.residual[None] = residual
+        return ncol
+
+    def _build_contacts(self) -> None:
+        p, wl, bd = self.particles, self.wall_fields, self.bonds
+        half = 0.5 * self.alert
+        while True:
+            g = self.grid
+            ck.grid_count(p, g, half)
+            total = ck.exclusive_scan(g.cell_count, g.cell_start, g.ncells)
+            if total <= g.capacity:
+                break
+            self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")
+            self.grid = Grid(g.origin, g.cell, g.dims, 2 * total)
+        ck.grid_scatter(p, self.grid, half)
+        while True:
+            ct = self.contacts
+            ck.contact_count(p, wl, self.grid, bd, ct, half, self.alert)
+            total = ck.exclusive_scan(ct.count, ct.start, self.n)
+            if total <= ct.capacity:
+                break
+            self._grow_contacts(int(total * 1.5) + 16)
+        ct.total[None] = total
+        ck.contact_fill(p, wl, self.grid, bd, ct, half, self.alert)
+
+    def _grow_contacts(self, capacity: int) -> None:
+        old = self.contacts
+        self.grow_events.append(f"contacts {old.capacity} -> {capacity}")
+        new = Contacts(self.n, capacity)
+        m = int(old.prev_total[None])
+        pj = np.zeros(capacity, np.int32)
+        pr = np.zeros((capacity, 3), backend.numpy_real())
+        pj[:m] = old.prev_j.to_numpy()[:m]
+        pr[:m] = old.prev_impulse.to_numpy()[:m]
+        new.prev_j.from_numpy(pj)
+        new.prev_impulse.from_numpy(pr)
+        new.prev_start.from_numpy(old.prev_start.to_numpy())
+        new.prev_total[None] = m
+        self.contacts = new
+
+    # ---------------------------------------------------------------- bonds
+    def create_bonds(self, gap_tolerance: float) -> int:
+        """Bond every particle pair whose gap is below `gap_tolerance` (m), stress-free, at the
+        current time. Existing bonds are replaced. Walls are never bonded. Returns the count."""
+        if gap_tolerance < 0:
+            raise ValueError(f"bond gap tolerance must be >= 0, got {gap_tolerance}")
+        x = self.particles.x.to_numpy().astype(float)
+        r = self.particles.radius.to_numpy().astype(float)
+        pairs = self._candidate_pairs(gap_tolerance)
+        if len(pairs):
+            gaps = np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1) - r[pairs[:, 0]] - r[pairs[:, 1]]
+            keep = gaps < gap_tolerance
+            pairs, gaps = pairs[keep], gaps[keep]
+        else:
+            gaps = np.zeros(0)
+        b = len(pairs)
+        self._set_bond_arrays({
+            "i": pairs[:, 0].astype(np.int32), "j": pairs[:, 1].astype(np.int32),
+            "g0": gaps, "created": np.full(b, self.time),
+            "area": math.pi * np.minimum(r[pairs[:, 0]], r[pairs[:, 1]]) ** 2 if b else np.zeros(0),
+        })
+        return b
+
+    def _candidate_pairs(self, reach: float) -> np.ndarray:
+        """All particle pairs with gap < reach, sorted (i < j), via the grid kernels."""
+        saved_alert = self.alert
+        saved_bonds = self.bonds
+        self.bonds = Bonds(self.n, 1)
+        self.bonds.total[None] = 0
+        self.alert = max(reach, 1e-300)
+        saved_count = self.wall_fields.count[None]
+        self.wall_fields.count[None] = 0
+        try:
+            self._build_contacts()
+            m = int(self.contacts.total[None])
+            pairs = np.stack([self.contacts.i.to_numpy()[:m], self.contacts.j.to_numpy()[:m]], axis=1)
+        finally:
+            self.alert = saved_alert
+            self.bonds = saved_bonds
+            self.wall_fields.count[None] = saved_count
+        return pairs.reshape(-1, 2)
+
+    def _set_bond_arrays(self, a: dict) -> None:
+        b = len(a["i"])
+        bd = Bonds(self.n, max(b, 1))
+        dt = backend.numpy_real()
+        order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
+        def put(field, key, default, shape=()):
+            arr = np.asarray(a.get(key, np.full((b,) + shape, default)))[order] if b else np.zeros((0,) + shape)
+            full = np.zeros((bd.capacity,) + shape, dtype=np.int32 if key in ("i", "j", "state") else dt)
+            full[:b] = arr
+            field.from_numpy(full)
+        put(bd.i, "i", 0); put(bd.j, "j", 0); put(bd.state, "state", 0)
+        put(bd.g0, "g0", 0.0); put(bd.created, "created", 0.0); put(bd.area, "area", 0.0)
+        put(bd.hd_n, "hd_n", 0.0); put(bd.hk_n, "hk_n", 0.0)
+        put(bd.impulse, "impulse", 0.0, (3,)); put(bd.d_t, "d_t", 0.0, (3,))
+        put(bd.hd_t, "hd_t", 0.0, (3,)); put(bd.hk_t, "hk_t", 0.0, (3,))
+        put(bd.broken_time, "broken_time", np.nan); put(bd.broken_pos, "broken_pos", 0.0, (3,))
+        if b and "broken_time" not in a:
+            bt = bd.broken_time.to_numpy(); bt[:b] = np.nan; bd.broken_time.from_numpy(bt)
+        start = np.zeros(self.n + 1, np.int32)
+        if b:
+            np.add.at(start, np.asarray(a["i"])[order] + 1, 1)
+        bd.start.from_numpy(np.cumsum(start).astype(np.int32))
+        bd.total[None] = b
+        self.bonds = bd
+
+    def bonds_intact_count(self) -> int:
+        b = int(self.bonds.total[None])
+        if b == 0:
+            return 0
+        return int(np.count_nonzero(self.bonds.state.to_numpy()[:b] == sk.INTACT))
+
+    # ---------------------------------------------------------------- state in / out
+    def state_dict(self) -> dict:
+        """Everything needed to continue the run bit-exactly, as NumPy arrays (HDF5 layout)."""
+        p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
+        m, b, nw = int(ct.total[None]), int(bd.total[None]), len(self.walls)
+        d = {
+            "particles/x": p.x.to_numpy(), "particles/v": p.v.to_numpy(), "particles/w": p.w.to_numpy(),
+            "particles/radius": p.radius.to_numpy(), "particles/layer": p.layer.to_numpy(),
+            "particles/inv_mass": p.inv_mass.to_numpy(), "particles/inv_inertia": p.inv_inertia.to_numpy(),
+            "particles/f_ext": p.f_ext.to_numpy(),
+            "contacts/i": ct.i.to_numpy()[:m], "contacts/j": ct.j.to_numpy()[:m],
+            "contacts/impulse": ct.impulse.to_numpy()[:m], "contacts/gap": ct.gap.to_numpy()[:m],
+            "contacts/start": ct.start.to_numpy(),
+            "walls/kind": np.array([KINDS[w.kind] for w in self.walls], np.int32),
+            "walls/point": np.array([w.position(self.time) for w in self.walls]).reshape(nw, 3),
+            "walls/direction": np.array([w.direction for w in self.walls], float).reshape(nw, 3),
+            "walls/radius": np.array([w.radius for w in self.walls], float),
+            "walls/extent": np.array([w.extent for w in self.walls], float).reshape(nw, 2),
+            "walls/force": wf.force.to_numpy()[:nw],
+        }
+        for key in ("i", "j", "state", "g0", "created", "area", "impulse", "d_t", "hd_n", "hk_n",
+                    "hd_t", "hk_t", "broken_time", "broken_pos"):
+            d["bonds/" + key] = getattr(bd, key).to_numpy()[:b]
+        d["bonds/state"] = d["bonds/state"].astype(np.int8)
+        return d
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore particles, contact history and bonds written by `state_dict` (bit-exact).
+        Walls are part of the scenario: set them with `set_walls`."""
+        p = self.particles
+        n = len(d["particles/radius"])
+        if n != self.n:
+            raise ValueError(f"state has {n} particles, simulation has {self.n}")
+        for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
+            getattr(p, key).from_numpy(np.ascontiguousarray(d["particles/" + key]))
+        m = len(d["contacts/i"])
+        if m > self.contacts.capacity:
+            self._grow_contacts(int(m * 1.5) + 16)
+        ct = self.contacts
+        pj = np.zeros(ct.capacity, np.int32); pj[:m] = d["contacts/j"]
+        pr = np.zeros((ct.capacity, 3), backend.numpy_real()); pr[:m] = d["contacts/impulse"]
+        ct.prev_j.from_numpy(pj)
+        ct.prev_impulse.from_numpy(pr)
+        ct.prev_start.from_numpy(np.asarray(d["contacts/start"], np.int32))
+        ct.prev_total[None] = m
+        bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
+        bonds["state"] = bonds["state"].astype(np.int32)
+        self._set_bond_arrays(bonds)
+
+    def memory_bytes(self) -> int:
+        parts = [self.particles, self.contacts, self.bonds, self.grid, self.wall_fields]
+        if self.colours is not None:
+            parts.append(self.colours)
+        return sum(field_bytes(o) for o in parts)
+
+    # ---------------------------------------------------------------- convenience readers
+    def positions(self) -> np.ndarray:
+        return self.particles.x.to_numpy().astype(float)
+
+    def velocities(self) -> np.ndarray:
+        return self.particles.v.to_numpy().astype(float)
+
+    def angular_velocities(self) -> np.ndarray:
+        return self.particles.w.to_numpy().astype(float)
+
+    def radii(self) -> np.ndarray:
+        return self.particles.radius.to_numpy().astype(float)
+
+    def wall_force(self, k: int) -> np.ndarray:
+        return self.wall_fields.force[k].to_numpy().astype(float)
+
+    def set_external_force(self, force) -> None:
+        f = np.zeros((self.n, 3)) + np.asarray(force, dtype=float)
+        self.particles.f_ext.from_numpy(f.astype(backend.numpy_real()))
+
+    def set_velocities(self, v) -> None:
+        v = np.zeros((self.n, 3)) + np.asarray(v, dtype=float)
+        self.particles.v.from_numpy(v.astype(backend.numpy_real()))
+
+    def contact_arrays(self) -> dict:
+        ct = self.contacts
+        m = int(ct.total[None])
+        return {"i": ct.i.to_numpy()[:m], "j": ct.j.to_numpy()[:m],
+                "impulse": ct.impulse.to_numpy()[:m].astype(float),
+                "normal": ct.normal.to_numpy()[:m].astype(float),
+                "gap": ct.gap.to_numpy()[:m].astype(float)}

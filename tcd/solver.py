@@ -1,0 +1,349 @@
+"""Nonlinear Gauss-Seidel over frictional contacts and bonds (PHYSICS.md sections 2-6).
+
+Each local problem is solved exactly (laws.py) with the latest body velocities, and its impulse
+increment is applied to the two bodies at once, so the contacts see each other implicitly
+through the body velocities. Two schedules run the same local solves:
+- "serial": every sweep visits bonds then contacts in canonical order inside ONE kernel launch
+  for all sweeps (no launch overhead; the true sequential NLGS). Best on a few CPU cores.
+- "coloured": bonds and contacts are greedily coloured so that one colour never shares a
+  dynamic body (walls excepted); the items of one colour are solved in parallel, colour after
+  colour, one launch per colour. For many-core devices (GPU).
+Convergence: the relative change of impulses over a sweep, sum |dR| / sum |R|, checked every
+`check_every` sweeps; the step stops when it is below `tolerance` or at `max_sweeps`.
+Everything here is deterministic: no float atomics, reductions in a fixed order.
+"""
+
+import taichi as ti
+
+from . import laws
+from .state import COLOUR_WORDS, MAX_COLOURS
+
+INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
+MODE_PAPER, MODE_BURGERS = 0, 1
+
+
+# --- body access (j >= n is a wall: kinematic, infinite mass) --------------------------------
+@ti.func
+def point_velocity(p: ti.template(), wl: ti.template(), b, offset):
+    u = ti.Vector([0.0, 0.0, 0.0])
+    if b < p.n:
+        u = p.v[b] + p.w[b].cross(offset)
+    else:
+        u = wl.velocity[b - p.n]
+    return u
+
+
+@ti.func
+def apply_impulse(p: ti.template(), i, j, n, dr):
+    """Impulse dr on j at -r_j n, -dr on i at r_i n."""
+    ri = p.radius[i]
+    p.v[i] -= dr * p.inv_mass[i]
+    p.w[i] -= p.inv_inertia[i] * (ri * n).cross(dr)
+    if j < p.n:
+        rj = p.radius[j]
+        p.v[j] += dr * p.inv_mass[j]
+        p.w[j] += p.inv_inertia[j] * (-rj * n).cross(dr)
+
+
+@ti.func
+def relative_velocity(p: ti.template(), wl: ti.template(), i, j, n):
+    rj = 0.0
+    if j < p.n:
+        rj = p.radius[j]
+    return point_velocity(p, wl, j, -rj * n) - (p.v[i] + p.w[i].cross(p.radius[i] * n))
+
+
+@ti.func
+def solve_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k):
+    i, j, n = ct.i[k], ct.j[k], ct.normal[k]
+    r_old = ct.impulse[k]
+    u = relative_velocity(p, wl, i, j, n)
+    un = u.dot(n)
+    ut = u - un * n
+    rn_old = r_old.dot(n)
+    rt_old = r_old - rn_old * n
+    ufn = un - ct.wnn[k] * rn_old
+    uft = ut - ct.wtt[k] * rt_old
+    rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], ct.wnn[k], ct.wtt[k], ct.mu[k])
+    r_new = rn * n + rt
+    dr = r_new - r_old
+    apply_impulse(p, i, j, n, dr)
+    ct.impulse[k] = r_new
+    return dr.norm(), r_new.norm()
+
+
+@ti.func
+def solve_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
+    da = 0.0
+    ra = 0.0
+    if bd.state[b] == INTACT:
+        i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+        r_old = bd.impulse[b]
+        u = relative_velocity(p, wl, i, j, n)
+        un = u.dot(n)
+        ut = u - un * n
+        rn_old = r_old.dot(n)
+        rt_old = r_old - rn_old * n
+        ufn = un - bd.wnn[b] * rn_old
+        uft = ut - bd.wtt[b] * rt_old
+        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], bd.wnn[b], bd.wtt[b],
+                             bd.cn[b], bd.ct[b])
+        r_new = rn * n + rt
+        dr = r_new - r_old
+        apply_impulse(p, i, j, n, dr)
+        bd.impulse[b] = r_new
+        da, ra = dr.norm(), r_new.norm()
+    return da, ra
+
+
+# --- step kernels ------------------------------------------------------------------------------
+@ti.kernel
+def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
+    """Keep the beginning-of-step velocities; add the impulse of external forces."""
+    g = ti.Vector([gx, gy, gz])
+    for i in range(p.n):
+        p.v_old[i] = p.v[i]
+        p.w_old[i] = p.w[i]
+        if p.inv_mass[i] > 0.0:
+            p.v[i] += h * (g + p.f_ext[i] * p.inv_mass[i])
+
+
+@ti.kernel
+def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
+    ti.loop_config(serialize=True)
+    for b in range(bd.total[None]):
+        if bd.state[b] == INTACT:
+            apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], bd.impulse[b])
+    ti.loop_config(serialize=True)
+    for k in range(ct.total[None]):
+        apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
+
+
+@ti.kernel
+def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                st: ti.template(), max_sweeps: ti.i32, tol: float, check_every: ti.i32):
+    sweeps = 0
+    residual = 0.0
+    done = 0
+    nb = bd.total[None]
+    nc = ct.total[None]
+    while done == 0:
+        dsum = 0.0
+        rsum = 0.0
+        for b in range(nb):
+            da, ra = solve_bond(p, wl, bd, b)
+            dsum += da
+            rsum += ra
+        for k in range(nc):
+            da, ra = solve_contact(p, wl, ct, k)
+            dsum += da
+            rsum += ra
+        sweeps += 1
+        if sweeps % check_every == 0 or sweeps >= max_sweeps:
+            residual = 0.0
+            if rsum > 0.0:
+                residual = dsum / rsum
+            if residual <= tol or sweeps >= max_sweeps:
+                done = 1
+    st.sweeps[None] = sweeps
+    st.residual[None] = residual
+
+
+# --- colouring for the parallel schedule -------------------------------------------------------
+@ti.kernel
+def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                  st: ti.template()):
+    """Greedy colouring of bonds (first, so they always get the same colours) then contacts,
+    in canonical order; item q < nb is bond q, else contact q - nb. A counting sort then lists
+    the items colour by colour in `cs.order` (CSR `cs.start`, canonical order inside a colour).
+    Broken bonds get colour -1 and are left out. Sets st.colours and st.colour_overflow."""
+    for i in range(n):
+        for w in ti.static(range(COLOUR_WORDS)):
+            cs.mask[i, w] = ti.u32(0)
+    for c in range(MAX_COLOURS + 1):
+        cs.start[c] = 0
+    nb = bd.total[None]
+    nc = ct.total[None]
+    ncol = 0
+    overflow = 0
+    ti.loop_config(serialize=True)
+    for q in range(nb + nc):
+        i = 0
+        j = 0
+        active = 1
+        if q < nb:
+            i, j = bd.i[q], bd.j[q]
+            if bd.state[q] != INTACT:
+                active = 0
+        else:
+            i, j = ct.i[q - nb], ct.j[q - nb]
+        col = -1
+        if active == 1:
+            for w in range(COLOUR_WORDS):
+                if col < 0:
+                    used = cs.mask[i, w]
+                    if j < n:
+                        used |= cs.mask[j, w]
+                    if used != ti.u32(0xFFFFFFFF):
+                        bit = 0
+                        while ((used >> ti.u32(bit)) & ti.u32(1)) == ti.u32(1):
+                            bit += 1
+                        col = w * 32 + bit
+                        cs.mask[i, w] |= ti.u32(1) << ti.u32(bit)
+                        if j < n:
+                            cs.mask[j, w] |= ti.u32(1) << ti.u32(bit)
+            if col < 0:
+                overflow = 1
+                col = 0
+            ncol = ti.max(ncol, col + 1)
+            cs.start[col + 1] += 1
+        cs.item_colour[q] = col
+        cs.change[q] = ti.Vector([0.0, 0.0])
+    ti.loop_config(serialize=True)
+    for c in range(MAX_COLOURS):
+        cs.start[c + 1] += cs.start[c]
+    for c in range(MAX_COLOURS):
+        cs.cursor[c] = cs.start[c]
+    ti.loop_config(serialize=True)
+    for q in range(nb + nc):
+        c = cs.item_colour[q]
+        if c >= 0:
+            cs.order[cs.cursor[c]] = q
+            cs.cursor[c] += 1
+    st.colours[None] = ncol
+    st.colour_overflow[None] = overflow
+
+
+@ti.kernel
+def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                 cs: ti.template(), c: ti.i32):
+    nb = bd.total[None]
+    for s in range(cs.start[c], cs.start[c + 1]):
+        q = cs.order[s]
+        da = 0.0
+        ra = 0.0
+        if q < nb:
+            da, ra = solve_bond(p, wl, bd, q)
+        else:
+            da, ra = solve_contact(p, wl, ct, q - nb)
+        cs.change[q] = ti.Vector([da, ra])
+
+
+@ti.kernel
+def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
+    """Relative impulse change of the last sweep, summed in item order (deterministic)."""
+    d = 0.0
+    r = 0.0
+    ti.loop_config(serialize=True)
+    for q in range(count):
+        d += cs.change[q][0]
+        r += cs.change[q][1]
+    res = 0.0
+    if r > 0.0:
+        res = d / r
+    return res
+
+
+# --- bonds: per-step frame and compliance, and post-solve update with yield -------------------
+@ti.kernel
+def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t_end: float,
+                  mode: ti.i32, k_m: float, eta_m: float, k_k: float, eta_k: float,
+                  tangent_factor: float):
+    """Current frame; tangential displacement and history carried into the new tangent plane
+    (projected, length kept); extra compliance 1/(theta H^2 K) and displacement terms."""
+    for b in range(bd.total[None]):
+        if bd.state[b] == INTACT:
+            i, j = bd.i[b], bd.j[b]
+            ri, rj = p.radius[i], p.radius[j]
+            d = p.x[j] - p.x[i]
+            dist = d.norm()
+            n = d / dist
+            bd.normal[b] = n
+            u = (p.v_old[j] + p.w_old[j].cross(-rj * n)) - (p.v_old[i] + p.w_old[i].cross(ri * n))
+            un = u.dot(n)
+            ut = u - un * n
+            bd.d_t[b] = rotate_into_plane(bd.d_t[b], n)
+            bd.hd_t[b] = rotate_into_plane(bd.hd_t[b], n)
+            bd.hk_t[b] = rotate_into_plane(bd.hk_t[b], n)
+            dn_beg = (dist - ri - rj - bd.g0[b]) + (1.0 - theta) * h * un
+            dt_beg = bd.d_t[b] + (1.0 - theta) * h * ut
+            bd.d_t_beg[b] = dt_beg
+            comp_n = 0.0
+            off_n = 0.0
+            off_t = ti.Vector([0.0, 0.0, 0.0])
+            if mode == MODE_PAPER:
+                comp_n = laws.creep_compliance_ti(t_end - bd.created[b], k_m, eta_m, k_k, eta_k)
+            else:
+                comp_n = 1.0 / k_m + h / eta_m + h / (eta_k + h * k_k)
+                a = eta_k / (eta_k + h * k_k)
+                off_n = bd.hd_n[b] + a * bd.hk_n[b]
+                off_t = bd.hd_t[b] + a * bd.hk_t[b]
+            comp_t = comp_n * tangent_factor
+            bd.cn[b] = comp_n / (theta * h * h)
+            bd.ct[b] = comp_t / (theta * h * h)
+            bd.rhs_n[b] = (dn_beg - off_n) / (theta * h)
+            bd.rhs_t[b] = (dt_beg - off_t) / (theta * h)
+            bd.wnn[b] = p.inv_mass[i] + p.inv_mass[j]
+            bd.wtt[b] = p.inv_mass[i] + p.inv_mass[j] + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
+
+
+@ti.func
+def rotate_into_plane(vec, n):
+    length = vec.norm()
+    out = vec - vec.dot(n) * n
+    ol = out.norm()
+    res = ti.Vector([0.0, 0.0, 0.0])
+    if ol > 0.0:
+        res = out * (length / ol)
+    return res
+
+
+@ti.kernel
+def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: float, theta: float,
+                 t_end: float, mode: ti.i32, k_m: float, eta_m: float, k_k: float,
+                 eta_k: float, tangent_factor: float, yield_stress: float):
+    """Tangential displacement at the end of the step, Burgers history, brittle yield."""
+    for b in range(bd.total[None]):
+        if bd.state[b] == INTACT:
+            i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+            u = relative_velocity(p, wl, i, j, n)
+            ut = u - u.dot(n) * n
+            bd.d_t[b] = bd.d_t_beg[b] + theta * h * ut
+            r = bd.impulse[b]
+            fn = -r.dot(n) / h                      # bond force, tension positive (N)
+            ft = -(r - r.dot(n) * n) / h           # tangential bond force (N)
+            if mode == MODE_BURGERS:
+                a = 1.0 / (eta_k + h * k_k)
+                bd.hd_n[b] += h * fn / eta_m
+                bd.hk_n[b] = (eta_k * bd.hk_n[b] + h * fn) * a
+                # tangential parameters are the normal ones divided by tangent_factor
+                at = 1.0 / (eta_k / tangent_factor + h * k_k / tangent_factor)
+                bd.hd_t[b] += h * ft / (eta_m / tangent_factor)
+                bd.hk_t[b] = (eta_k / tangent_factor * bd.hk_t[b] + h * ft) * at
+            sigma = fn / bd.area[b]
+            tau = ft.norm() / bd.area[b]
+            if sigma >= yield_stress or tau >= yield_stress:
+                bd.state[b] = BROKEN_TENSION if sigma >= yield_stress else BROKEN_SHEAR
+                bd.broken_time[b] = t_end
+                ri = p.radius[i]
+                gap = (p.x[j] - p.x[i]).norm() - ri - p.radius[j]
+                bd.broken_pos[b] = p.x[i] + (ri + 0.5 * gap) * n
+
+
+# --- integration and wall forces ---------------------------------------------------------------
+@ti.kernel
+def integrate(p: ti.template(), h: float, theta: float):
+    for i in range(p.n):
+        p.x[i] += h * (theta * p.v[i] + (1.0 - theta) * p.v_old[i])
+
+
+@ti.kernel
+def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float):
+    """Force of the particles on each wall over the step: sum of contact impulses / H
+    (outer loop over walls, fixed-order inner sum: deterministic)."""
+    for w in range(wl.count[None]):
+        s = ti.Vector([0.0, 0.0, 0.0])
+        for k in range(ct.total[None]):
+            if ct.j[k] == p.n + w:
+                s += ct.impulse[k]
+        wl.force[w] = s / h

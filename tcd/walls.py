@@ -1,0 +1,96 @@
+"""Kinematic walls: planes and inner surfaces of finite cylinders with imposed motion.
+
+A wall never feels the particles: its position is a function of time (fixed, constant velocity
+or sinusoidal displacement about its initial position). The solver uses, over a step [t, t+H],
+the wall velocity (p(t+H) - p(t)) / H, so that integrating it reproduces the prescribed
+position exactly. The impulse particles exert on each wall is accumulated per step: that is the
+wall force (impulse / H).
+
+Geometry conventions (SI units):
+- plane: `point` on the plane, `direction` the unit normal pointing INTO the granular domain;
+  `radius` is only the size of the plate drawn by the renderer.
+- cylinder: `point` on the axis, `direction` the unit axis, `radius` the inner radius,
+  `extent` = (lo, hi) the axial range of the shell relative to `point`; a particle interacts
+  with the shell when its centre's axial coordinate lies within [lo - r, hi + r].
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Tuple
+
+import numpy as np
+
+PLANE, CYLINDER = 0, 1
+KINDS = {"plane": PLANE, "cylinder": CYLINDER}
+MOTIONS = ("fixed", "constant", "sine")
+
+Vec = Tuple[float, float, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class Wall:
+    """A rigid kinematic wall.
+
+    kind: "plane" or "cylinder". point (m), direction (unit), radius (m), extent (m, cylinder
+    axial range). motion: "fixed", "constant" (velocity, m/s) or "sine" (displacement
+    amplitude * sin(2 pi frequency (t - start))), amplitude in m, frequency in Hz. start (s) is
+    when the motion begins (the wall rests at `point` before). friction: Coulomb coefficient
+    against particles.
+    """
+    kind: str
+    point: Vec
+    direction: Vec
+    radius: float = 0.075
+    extent: Tuple[float, float] = (0.0, 0.0)
+    friction: float = 0.0
+    motion: str = "fixed"
+    velocity: Vec = (0.0, 0.0, 0.0)
+    amplitude: Vec = (0.0, 0.0, 0.0)
+    frequency: float = 0.0
+    start: float = 0.0
+    name: str = ""
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"wall {self.name!r}: unknown kind {self.kind!r} (plane, cylinder)")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"wall {self.name!r}: unknown motion {self.motion!r} {MOTIONS}")
+        d = np.asarray(self.direction, dtype=float)
+        n = float(np.linalg.norm(d))
+        if not n > 0:
+            raise ValueError(f"wall {self.name!r}: direction must be a non-zero vector")
+        object.__setattr__(self, "direction", tuple(float(c) for c in d / n))
+        object.__setattr__(self, "point", tuple(float(c) for c in self.point))
+        if self.kind == "cylinder":
+            if not self.radius > 0:
+                raise ValueError(f"wall {self.name!r}: cylinder radius must be positive")
+            if not self.extent[1] > self.extent[0]:
+                raise ValueError(f"wall {self.name!r}: cylinder extent must have hi > lo")
+        if self.friction < 0:
+            raise ValueError(f"wall {self.name!r}: friction must be >= 0")
+        if self.motion == "sine" and not self.frequency > 0:
+            raise ValueError(f"wall {self.name!r}: sinusoidal motion needs frequency > 0")
+
+    def position(self, t: float) -> np.ndarray:
+        p0 = np.asarray(self.point, dtype=float)
+        s = t - self.start
+        if self.motion == "fixed" or s <= 0:
+            return p0
+        if self.motion == "constant":
+            return p0 + np.asarray(self.velocity, dtype=float) * s
+        return p0 + np.asarray(self.amplitude, dtype=float) * math.sin(2 * math.pi * self.frequency * s)
+
+    def step_velocity(self, t: float, h: float) -> np.ndarray:
+        return (self.position(t + h) - self.position(t)) / h
+
+    def moved(self, **changes) -> "Wall":
+        return dataclasses.replace(self, **changes)
+
+
+def plane(point, normal, **kw) -> Wall:
+    return Wall("plane", tuple(point), tuple(normal), **kw)
+
+
+def cylinder(point, axis, radius, extent, **kw) -> Wall:
+    return Wall("cylinder", tuple(point), tuple(axis), radius=radius, extent=tuple(extent), **kw)
