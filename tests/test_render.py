@@ -1,0 +1,287 @@
+"""Offscreen renderer: geometry of the ray casting, cutting plane, reference image, files.
+
+Pixel tests use orthographic cameras with 1 mm pixels, so the projected disk of a sphere is
+known analytically: pixel (i, j) has its centre at x = (j + 0.5 - W/2) mm, y = (H/2 - i - 0.5) mm
+in the camera's right/up coordinates. Background is pure white; sphere colours are pure
+primaries, so "sphere" and "background" pixels are told apart exactly.
+"""
+import importlib.util
+from pathlib import Path
+
+import h5py
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from tcd import backend, render
+from tcd.render import Camera
+
+W, H, PX = 64, 48, 1e-3
+RED, GREEN, BLUE = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _tcd_backend_render():
+    backend.init("cpu", "f64")
+
+
+def top_camera():
+    """Looks down -z; image right = +x, image up = +y."""
+    return Camera("ortho", eye=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                  ortho_width=W * PX)
+
+
+def front_camera():
+    """Looks along +y from y = -1 m; image right = +x, image up = +z."""
+    return Camera("ortho", eye=(0.0, -1.0, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0),
+                  ortho_width=W * PX)
+
+
+def pixel_centres():
+    j, i = np.meshgrid(np.arange(W), np.arange(H))
+    return (j + 0.5 - W / 2) * PX, (H / 2 - i - 0.5) * PX
+
+
+def disk_masks(cu, cv, r):
+    """(inside by more than a pixel, outside by more than a pixel) of a projected disk."""
+    u, v = pixel_centres()
+    dist = np.hypot(u - cu, v - cv)
+    return dist < r - PX, dist > r + PX
+
+
+def background(img):
+    return np.all(img == 255, axis=-1)
+
+
+def draw(x, radius, colors, **kw):
+    kw.setdefault("camera", top_camera())
+    return render.render_scene(np.asarray(x, float), np.asarray(radius, float),
+                               np.asarray(colors, float), width=W, height=H, **kw)
+
+
+def test_single_sphere_covers_its_projected_disk():
+    c, r = (0.0031, -0.0042, 0.002), 0.0105
+    img = draw([c], [r], [RED])
+    inside, outside = disk_masks(c[0], c[1], r)
+    assert inside.sum() > 250
+    assert not background(img)[inside].any()
+    assert background(img)[outside].all()
+    sphere = ~background(img)
+    assert np.all(img[sphere][:, 1:] == 0), "a red sphere shades to shades of red only"
+    # Lambert shading: the lit side (light comes from the upper left) is brighter than the other
+    u, v = pixel_centres()
+    upper_left = inside & (u < c[0] - 0.5 * r) & (v > c[1] + 0.3 * r)
+    lower_right = inside & (u > c[0] + 0.5 * r) & (v < c[1] - 0.3 * r)
+    assert img[upper_left][:, 0].mean() > img[lower_right][:, 0].mean() + 40
+
+
+def test_nearer_sphere_is_seen_where_two_overlap():
+    a, b = (-0.004, 0.0, 0.0), (0.004, 0.0, 0.005)        # b is nearer to the camera (+z)
+    r = 0.008
+    overlap = disk_masks(a[0], a[1], r)[0] & disk_masks(b[0], b[1], r)[0]
+    assert overlap.sum() > 30
+    img = draw([a, b], [r, r], [RED, GREEN])
+    assert np.all(img[overlap][:, 1] > 0) and np.all(img[overlap][:, 0] == 0)
+    # index order does not matter, depth does
+    swapped = draw([b, a], [r, r], [GREEN, RED])
+    np.testing.assert_array_equal(img, swapped)
+    a_near = draw([(a[0], a[1], 0.01), b], [r, r], [RED, GREEN])
+    assert np.all(a_near[overlap][:, 0] > 0) and np.all(a_near[overlap][:, 1] == 0)
+
+
+def test_section_removes_what_lies_in_front_and_shows_cut_faces():
+    r = 0.008
+    front = (-0.018, -0.02, 0.0)       # entirely in y < 0: removed
+    cut = (0.0, 0.0, 0.0)              # centre on the plane: half removed, cut face shown
+    back = (0.018, 0.02, 0.0)          # entirely in y > 0: untouched
+    x, radius, colors = [front, cut, back], [r, r, r], [RED, GREEN, BLUE]
+    plane = ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    whole = draw(x, radius, colors, camera=front_camera())
+    sliced = draw(x, radius, colors, camera=front_camera(), section=plane)
+    masks = {name: disk_masks(p[0], p[2], r)[0] for name, p in
+             (("front", front), ("cut", cut), ("back", back))}
+    assert not background(whole)[masks["front"]].any()
+    assert background(sliced)[masks["front"]].all(), "sphere in front of the plane is removed"
+    np.testing.assert_array_equal(sliced[masks["back"]], whole[masks["back"]])
+    # the cut face: a flat disk of the sphere's full radius, coloured like it, slightly darker
+    face = sliced[disk_masks(cut[0], cut[2], r - 1.5 * PX)[0]]
+    expected = round(255 * render.CUT_FACE_SHADE)
+    assert np.all(face[:, 1] == expected) and np.all(face[:, [0, 2]] == 0)
+    # without the cut, the same pixels show a shaded sphere (not flat)
+    shaded = whole[disk_masks(cut[0], cut[2], r - 1.5 * PX)[0]][:, 1]
+    assert shaded.max() - shaded.min() > 60
+    # the string form "xz" is the same plane through the axis (no walls: box centre at y = 0)
+    named = draw(x, radius, colors, camera=front_camera(), section="xz")
+    np.testing.assert_array_equal(named, sliced)
+
+
+def test_perspective_projection_matches_camera_project():
+    cam = Camera("perspective", eye=(0.1, -0.2, 0.15), target=(0.0, 0.0, 0.0), fov_deg=30.0)
+    x = np.array([[0.0, 0.0, 0.0], [0.03, 0.02, -0.01]])
+    img = draw(x, [0.004, 0.004], [RED, BLUE], camera=cam)
+    (c0, r0), (c1, r1) = cam.project(x, W, H)[0].astype(int)
+    assert img[r0, c0, 0] > 0 and img[r0, c0, 2] == 0
+    assert img[r1, c1, 2] > 0 and img[r1, c1, 0] == 0
+
+
+def test_walls_are_translucent_and_outlined():
+    walls = render.WallSet(kind=np.array([render.CYLINDER]), point=np.zeros((1, 3)),
+                               direction=np.array([[0.0, 0.0, 1.0]]), radius=np.array([0.02]),
+                               extent=np.array([[-0.015, 0.015]]))
+    img = draw([(0.0, 0.0, 0.0)], [0.008], [RED], camera=front_camera(), walls=walls)
+    u, v = pixel_centres()
+    between = (np.abs(u) > 0.01) & (np.abs(u) < 0.018) & (np.abs(v) < 0.01)
+    assert np.all(img[between] < 255) and np.all(img[between] > 200), "thin translucent veil"
+    rim = (np.abs(np.abs(v) - 0.015) < 0.5 * PX) & (np.abs(u) < 0.015)
+    assert img[rim].max() < 120, "rims drawn as dark lines"
+    assert np.all(img[np.abs(u) > 0.022] == 255)
+
+
+def test_matches_reference_image():
+    path = render.REFERENCE_IMAGE
+    assert path.is_file(), f"{path} missing: run `python -m tcd.render --regen-reference`"
+    ref = iio.imread(path)[:, :, :3].astype(int)
+    img = render.render_reference().astype(int)
+    assert img.shape == ref.shape
+    diff = np.abs(img - ref)
+    assert diff.mean() < 2.0 and diff.max() < 40, (diff.mean(), diff.max())
+
+
+def test_buffers_are_reused_between_frames():
+    draw([(0.0, 0.0, 0.0)], [0.01], [RED])
+    buffers = render.renderer().buffers
+    draw([(0.0, 0.0, 0.0), (0.01, 0.0, 0.0)], [0.01, 0.005], [RED, BLUE])
+    assert render.renderer().buffers is buffers
+
+
+def test_bond_damage_is_broken_fraction_per_particle():
+    damage = render.bond_damage(4, [0, 1, 0], [1, 2, 2], [0, 2, 1])
+    np.testing.assert_allclose(damage[:3], [0.5, 0.5, 1.0])
+    assert np.isnan(damage[3])
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+
+def write_states(path, frames=3, n=40, seed=0):
+    """A small states.h5 following the schema (frames drift upward, bonds break over time)."""
+    rng = np.random.default_rng(seed)
+    x0 = np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.02, 0.02, n),
+                          rng.uniform(0.004, 0.036, n)])
+    radius = rng.choice([0.002, 0.004], n)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(schema_version=1, tcd_version="test", scenario="")
+        for k in range(frames):
+            g = f.create_group(f"frames/{k:06d}")
+            g.attrs.update(time=0.1 * k, step=10 * k, stage="shear")
+            v = np.zeros((n, 3))
+            v[:, 0] = 0.01 * k * x0[:, 2] / 0.04
+            g["particles/x"] = x0 + v * 0.1
+            g["particles/v"] = v
+            g["particles/w"] = np.zeros((n, 3))
+            g["particles/radius"] = radius
+            g["particles/layer"] = (x0[:, 2] > 0.02).astype(np.int32)
+            g["walls/kind"] = np.array([0, 0, 1], np.int32)
+            g["walls/point"] = np.array([[0, 0, 0], [0, 0, 0.04], [0, 0, 0]], float)
+            g["walls/direction"] = np.array([[0, 0, 1], [0, 0, -1], [0, 0, 1]], float)
+            g["walls/radius"] = np.full(3, 0.03)
+            g["walls/extent"] = np.array([[0, 0], [0, 0], [0, 0.04]], float)
+            g["walls/force"] = np.zeros((3, 3))
+            g["bonds/i"] = np.arange(0, n - 1, dtype=np.int32)
+            g["bonds/j"] = np.arange(1, n, dtype=np.int32)
+            g["bonds/state"] = (np.arange(n - 1) < 5 * k).astype(np.int8)
+    return path
+
+
+@pytest.fixture(scope="module")
+def states(tmp_path_factory):
+    return write_states(tmp_path_factory.mktemp("states") / "states.h5")
+
+
+def test_load_frame_reads_the_schema_and_rejects_bad_requests(states, tmp_path):
+    assert render.frame_count(states) == 3
+    last = render.load_frame(states)
+    assert last["step"] == 20 and last["stage"] == "shear" and last["x"].shape == (40, 3)
+    assert last["wall_kind"].tolist() == [0, 0, 1] and last["bond_state"].sum() == 10
+    assert render.load_frame(states, 0)["time"] == 0.0
+    with pytest.raises(ValueError, match=r"states\.h5.*frame 3"):
+        render.load_frame(states, 3)
+    with pytest.raises(FileNotFoundError, match="nope.h5"):
+        render.load_frame(tmp_path / "nope.h5")
+
+
+def test_render_file_writes_png_and_gif(states, tmp_path):
+    png = tmp_path / "frame.png"
+    render.render_file(states, png, color="speed", width=96, height=72)
+    img = iio.imread(png)
+    assert img.shape[:2] == (72, 96) and img.dtype == np.uint8
+    assert (img[:, :, :3] < 250).any(axis=-1).mean() > 0.05, "something was drawn"
+    gif = tmp_path / "anim.gif"
+    render.render_file(states, gif, frames="all", color="bond-damage", section="xz",
+                           width=80, height=60)
+    frames = iio.imread(gif, index=None)
+    assert frames.shape[:3] == (3, 60, 80)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.gif", "frame.png"]
+
+
+@pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is not None,
+                    reason="imageio-ffmpeg installed: mp4 works")
+def test_mp4_without_ffmpeg_says_so(states, tmp_path):
+    with pytest.raises(RuntimeError, match=r"imageio-ffmpeg.*\.gif"):
+        render.render_file(states, tmp_path / "anim.mp4", frames="all")
+    assert not list(tmp_path.iterdir())
+
+
+def test_failed_write_leaves_previous_file_intact(tmp_path, monkeypatch):
+    def crash_midway(path, image, **kw):
+        Path(path).write_bytes(b"half an image")
+        raise OSError("disk full")
+
+    out = tmp_path / "image.png"
+    out.write_bytes(b"old")
+    monkeypatch.setattr(iio, "imwrite", crash_midway)
+    with pytest.raises(OSError, match="disk full"):
+        render.write_image(np.zeros((4, 4, 3), np.uint8), out)
+    assert out.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["image.png"]
+
+
+def test_figures_are_written(states, tmp_path):
+    render.figure_sample(states, tmp_path / "fig2.png", width=120, height=90)
+    assert iio.imread(tmp_path / "fig2.png").shape[:2] == (90, 120)
+    render.figure_velocity(states, tmp_path / "fig3.png", [1, 2], panel_width=120)
+    fig3 = iio.imread(tmp_path / "fig3.png")
+    assert fig3.shape[1] > fig3.shape[0] > 100, "two panels side by side"
+
+
+def test_viewer_without_display_points_to_offscreen_render(states, monkeypatch):
+    from tcd import viewer
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(RuntimeError, match=r"display.*Vulkan.*tcd render"):
+        viewer.view(states)
+
+
+def test_regen_reference_writes_to_the_given_place(tmp_path, monkeypatch):
+    monkeypatch.setattr(render, "REFERENCE_IMAGE", Path(tmp_path / "ref.png"))
+    assert render.main(["--regen-reference"]) == 0
+    np.testing.assert_array_equal(iio.imread(tmp_path / "ref.png")[:, :, :3],
+                                  render.render_reference())
+
+
+def test_load_frame_fills_optional_particle_data_and_orders_frames(tmp_path):
+    path = tmp_path / "minimal.h5"
+    with h5py.File(path, "w") as f:
+        for k in (0, 1000000, 999999):          # a 7-digit name sorts after the 6-digit ones
+            g = f.create_group(f"frames/{k:06d}")
+            g.attrs.update(time=float(k), step=k, stage="pour")
+            g["particles/x"] = np.zeros((2, 3))
+            g["particles/radius"] = np.full(2, 1e-3)
+    last = render.load_frame(path)
+    assert last["step"] == 1000000 and last["v"].shape == (2, 3) and not last["v"].any()
+    assert last["layer"].tolist() == [0, 0] and last["wall_kind"].shape == (0,)
+    assert last["bond_i"].shape == (0,)
+    with h5py.File(path, "a") as f:
+        del f["frames/000000/particles/radius"]
+    with pytest.raises(ValueError, match=r"minimal\.h5: frame 000000.*radius"):
+        render.load_frame(path, 0)
