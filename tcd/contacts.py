@@ -23,14 +23,14 @@ PLANE, CYLINDER = 0, 1
 def cell_of(g: ti.template(), p):
     c = ti.Vector([0, 0, 0])
     for a in ti.static(range(3)):
-        k = ti.cast(ti.floor((p[a] - g.origin[a]) * g.inv_cell), ti.i32)
-        c[a] = ti.min(ti.max(k, 0), g.dims[a] - 1)
+        k = ti.cast(ti.floor((p[a] - g.origin[None][a]) * g.inv_cell[None]), ti.i32)
+        c[a] = ti.min(ti.max(k, 0), g.dims[None][a] - 1)
     return c
 
 
 @ti.func
 def cell_index(g: ti.template(), c):
-    return (c[0] * g.dims[1] + c[1]) * g.dims[2] + c[2]
+    return (c[0] * g.dims[None][1] + c[1]) * g.dims[None][2] + c[2]
 
 
 @ti.func
@@ -41,9 +41,9 @@ def box_cells(g: ti.template(), p: ti.template(), i, half_alert):
 
 @ti.kernel
 def grid_count(p: ti.template(), g: ti.template(), half_alert: float):
-    for c in range(g.ncells):
+    for c in range(g.ncells[None]):
         g.cell_count[c] = 0
-    for i in range(p.n):
+    for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -65,9 +65,9 @@ def exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32) -> ti.
 
 @ti.kernel
 def grid_scatter(p: ti.template(), g: ti.template(), half_alert: float):
-    for c in range(g.ncells):
+    for c in range(g.ncells[None]):
         g.cell_count[c] = 0
-    for i in range(p.n):
+    for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -128,7 +128,7 @@ def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo
 @ti.kernel
 def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
                   ct: ti.template(), half_alert: float, alert: float):
-    for i in range(p.n):
+    for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert)
         m = 0
         for cx in range(lo[0], hi[0] + 1):
@@ -150,7 +150,7 @@ def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.
 @ti.kernel
 def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
                  ct: ti.template(), half_alert: float, alert: float):
-    for i in range(p.n):
+    for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert)
         base = ct.start[i]
         m = 0
@@ -176,7 +176,7 @@ def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
             if valid == 1 and gap < alert:
-                ct.j[base + m] = p.n + k
+                ct.j[base + m] = p.count[None] + k
                 m += 1
         for a in range(m):
             ct.i[base + a] = i
@@ -197,7 +197,7 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
         im_j = 0.0
         ii_j = 0.0
         f = mu
-        if j < p.n:
+        if j < p.count[None]:
             d = p.x[j] - p.x[i]
             dist = d.norm()
             if dist > 0.0:
@@ -207,7 +207,7 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
             vj, wj = p.v_old[j], p.w_old[j]
             im_j, ii_j = p.inv_mass[j], p.inv_inertia[j]
         else:
-            kw = j - p.n
+            kw = j - p.count[None]
             gap, n, valid = wall_geometry(wl, kw, p.x[i], ri)
             vj = wl.velocity[kw]
             f = wl.friction[kw]

@@ -71,7 +71,8 @@ def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np
     overlap whatever the offsets); a site is inside the column when a sphere of the largest size
     centred there stays inside `column_diameter`. Each sphere gets a uniform horizontal offset in
     [-jitter, jitter] on x and y (symmetry breaking). The column has just enough lattice levels for all spheres;
-    the sites used among them and the order of spheres over those sites are random.
+    the sites used among them are random (the radii come in random order), and the
+    returned sites are sorted by level, bottom first.
     Returns positions (count, 3) with the column axis at x = y = 0 and the lowest centres at
     z0 + spacing / 2.
     """
@@ -103,5 +104,6 @@ def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np
     chosen = np.sort(rng.choice(len(sites), size=len(radii), replace=False))
     pos = sites[chosen]
     pos[:, :2] += rng.uniform(-jitter, jitter, size=(len(radii), 2))
-    order = rng.permutation(len(radii))
-    return pos[order]
+    # radii are already in random order; positions stay sorted bottom-up so that particle
+    # index follows height, which makes Gauss-Seidel sweeps in index order propagate loads
+    return pos

@@ -21,7 +21,7 @@ import taichi as ti
 
 from . import backend, contacts as ck, solver as sk
 from .state import (MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
-                    WallFields, field_bytes)
+                    WallFields, acquire, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "coloured")
@@ -144,8 +144,9 @@ class Simulation:
         if self.schedule == "auto":
             self.schedule = "serial" if backend.arch() == "cpu" else "coloured"
 
-        self.particles = Particles(n)
+        self.particles = acquire(Particles, n)
         p = self.particles
+        p.count[None] = n
         mass = density * 4.0 / 3.0 * math.pi * radius**3
         inv_mass = 1.0 / mass
         inv_inertia = 1.0 / (0.4 * mass * radius**2)
@@ -153,18 +154,16 @@ class Simulation:
             fixed = np.asarray(fixed, dtype=bool)
             inv_mass[fixed] = 0.0
             inv_inertia[fixed] = 0.0
-        dt = backend.numpy_real()
-        p.radius.from_numpy(radius.astype(dt))
-        p.inv_mass.from_numpy(inv_mass.astype(dt))
-        p.inv_inertia.from_numpy(inv_inertia.astype(dt))
-        p.x.from_numpy(position.astype(dt))
-        vel = np.zeros((n, 3)) if velocity is None else np.asarray(velocity, dtype=float)
-        p.v.from_numpy(vel.astype(dt))
-        p.w.from_numpy(np.zeros((n, 3), dt))
-        p.f_ext.from_numpy(np.zeros((n, 3), dt))
-        p.layer.from_numpy(np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
+        put(p.radius, radius)
+        put(p.inv_mass, inv_mass)
+        put(p.inv_inertia, inv_inertia)
+        put(p.x, position)
+        put(p.v, np.zeros((n, 3)) if velocity is None else np.asarray(velocity, dtype=float))
+        put(p.w, np.zeros((n, 3)))
+        put(p.f_ext, np.zeros((n, 3)))
+        put(p.layer, np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
 
-        self.wall_fields = WallFields()
+        self.wall_fields = acquire(WallFields, MAX_WALLS)
         self.walls: list[Wall] = []
         self.set_walls(walls)
 
@@ -175,11 +174,10 @@ class Simulation:
         self.cell_size = max(self.cell_size, 1e-9)
         self.grid = self._make_grid(self._grid_capacity_estimate(radius))
         cap = contact_capacity if contact_capacity else max(64, 8 * n)
-        self.contacts = Contacts(n, cap)
-        self.bonds = Bonds(n, 1)
-        self.bonds.total[None] = 0
-        self.colours = ColourSet(n, cap + 1) if self.schedule == "coloured" else None
-        self.stats = SolverStats()
+        self.contacts = acquire(Contacts, cap, self.particles.capacity)
+        self.bonds = acquire(Bonds, 1, self.particles.capacity)
+        self.colours = None
+        self.stats = acquire(SolverStats, 1)
         self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
         self.grow_events: list[str] = []
 
@@ -187,10 +185,27 @@ class Simulation:
     def _make_grid(self, capacity: int) -> Grid:
         lo, hi = self.domain
         dims = np.maximum(1, np.ceil((hi - lo) / self.cell_size).astype(int))
-        if int(np.prod(dims)) > 64_000_000:
+        ncells = int(np.prod(dims))
+        if ncells > 64_000_000:
             raise ValueError(f"broad-phase grid of {dims.tolist()} cells is too large: enlarge "
                              f"cell_size or shrink the domain")
-        return Grid(lo, self.cell_size, dims, capacity)
+        grid = acquire(Grid, max(capacity, ncells))
+        if grid.cell_capacity < ncells:
+            release(grid)
+            grid = Grid(max(capacity, ncells), ncells)
+        grid.configure(lo, self.cell_size, dims)
+        return grid
+
+    def close(self) -> None:
+        """Hand the fields back to the pool for the next simulation (done on deletion too)."""
+        for name in ("particles", "wall_fields", "grid", "contacts", "bonds", "colours", "stats"):
+            release(self.__dict__.pop(name, None))
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
 
     def _grid_capacity_estimate(self, radius) -> int:
         span = 2.0 * (radius + self.alert) / self.cell_size + 1.0
@@ -221,10 +236,11 @@ class Simulation:
 
     def _drop_wall_history(self):
         ct = self.contacts
-        pj = ct.prev_j.to_numpy()
-        pr = ct.prev_impulse.to_numpy()
+        m = int(ct.prev_total[None])
+        pj = get(ct.prev_j, m)
+        pr = get(ct.prev_impulse, m)
         pr[pj >= self.n] = 0.0
-        ct.prev_impulse.from_numpy(pr)
+        put(ct.prev_impulse, pr)
 
     # ---------------------------------------------------------------- the time step
     def step(self, count: int = 1) -> StepRecord:
@@ -269,7 +285,8 @@ class Simulation:
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
         need = ct.capacity + bd.capacity
         if self.colours is None or self.colours.capacity < need:
-            self.colours = ColourSet(self.n, need)
+            release(self.colours)
+            self.colours = acquire(ColourSet, need, self.particles.capacity)
         cs = self.colours
         sk.colour_greedy(self.n, ct, bd, cs, self.stats)
         if self.stats.colour_overflow[None]:
@@ -296,11 +313,12 @@ class Simulation:
         while True:
             g = self.grid
             ck.grid_count(p, g, half)
-            total = ck.exclusive_scan(g.cell_count, g.cell_start, g.ncells)
+            total = ck.exclusive_scan(g.cell_count, g.cell_start, g.ncells[None])
             if total <= g.capacity:
                 break
             self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")
-            self.grid = Grid(g.origin, g.cell, g.dims, 2 * total)
+            release(g)
+            self.grid = self._make_grid(2 * total)
         ck.grid_scatter(p, self.grid, half)
         while True:
             ct = self.contacts
@@ -315,16 +333,13 @@ class Simulation:
     def _grow_contacts(self, capacity: int) -> None:
         old = self.contacts
         self.grow_events.append(f"contacts {old.capacity} -> {capacity}")
-        new = Contacts(self.n, capacity)
+        new = acquire(Contacts, capacity, self.particles.capacity)
         m = int(old.prev_total[None])
-        pj = np.zeros(capacity, np.int32)
-        pr = np.zeros((capacity, 3), backend.numpy_real())
-        pj[:m] = old.prev_j.to_numpy()[:m]
-        pr[:m] = old.prev_impulse.to_numpy()[:m]
-        new.prev_j.from_numpy(pj)
-        new.prev_impulse.from_numpy(pr)
+        put(new.prev_j, get(old.prev_j, m))
+        put(new.prev_impulse, get(old.prev_impulse, m))
         new.prev_start.from_numpy(old.prev_start.to_numpy())
         new.prev_total[None] = m
+        release(old)
         self.contacts = new
 
     # ---------------------------------------------------------------- bonds
@@ -333,8 +348,7 @@ class Simulation:
         current time. Existing bonds are replaced. Walls are never bonded. Returns the count."""
         if gap_tolerance < 0:
             raise ValueError(f"bond gap tolerance must be >= 0, got {gap_tolerance}")
-        x = self.particles.x.to_numpy().astype(float)
-        r = self.particles.radius.to_numpy().astype(float)
+        x, r = self.positions(), self.radii()
         pairs = self._candidate_pairs(gap_tolerance)
         if len(pairs):
             gaps = np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1) - r[pairs[:, 0]] - r[pairs[:, 1]]
@@ -354,43 +368,39 @@ class Simulation:
         """All particle pairs with gap < reach, sorted (i < j), via the grid kernels."""
         saved_alert = self.alert
         saved_bonds = self.bonds
-        self.bonds = Bonds(self.n, 1)
-        self.bonds.total[None] = 0
+        self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.alert = max(reach, 1e-300)
         saved_count = self.wall_fields.count[None]
         self.wall_fields.count[None] = 0
         try:
             self._build_contacts()
             m = int(self.contacts.total[None])
-            pairs = np.stack([self.contacts.i.to_numpy()[:m], self.contacts.j.to_numpy()[:m]], axis=1)
+            pairs = np.stack([get(self.contacts.i, m), get(self.contacts.j, m)], axis=1)
         finally:
             self.alert = saved_alert
+            release(self.bonds)
             self.bonds = saved_bonds
             self.wall_fields.count[None] = saved_count
         return pairs.reshape(-1, 2)
 
+    _BOND_DEFAULTS = {"i": 0, "j": 0, "state": 0, "g0": 0.0, "created": 0.0, "area": 0.0,
+                      "hd_n": 0.0, "hk_n": 0.0, "impulse": 0.0, "d_t": 0.0, "hd_t": 0.0,
+                      "hk_t": 0.0, "broken_time": np.nan, "broken_pos": 0.0}
+    _BOND_VECTORS = ("impulse", "d_t", "hd_t", "hk_t", "broken_pos")
+
     def _set_bond_arrays(self, a: dict) -> None:
+        """Install a bond set given as arrays (missing state arrays take their defaults)."""
         b = len(a["i"])
-        bd = Bonds(self.n, max(b, 1))
-        dt = backend.numpy_real()
+        release(self.bonds)
+        bd = acquire(Bonds, max(b, 1), self.particles.capacity)
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
-        def put(field, key, default, shape=()):
-            arr = np.asarray(a.get(key, np.full((b,) + shape, default)))[order] if b else np.zeros((0,) + shape)
-            full = np.zeros((bd.capacity,) + shape, dtype=np.int32 if key in ("i", "j", "state") else dt)
-            full[:b] = arr
-            field.from_numpy(full)
-        put(bd.i, "i", 0); put(bd.j, "j", 0); put(bd.state, "state", 0)
-        put(bd.g0, "g0", 0.0); put(bd.created, "created", 0.0); put(bd.area, "area", 0.0)
-        put(bd.hd_n, "hd_n", 0.0); put(bd.hk_n, "hk_n", 0.0)
-        put(bd.impulse, "impulse", 0.0, (3,)); put(bd.d_t, "d_t", 0.0, (3,))
-        put(bd.hd_t, "hd_t", 0.0, (3,)); put(bd.hk_t, "hk_t", 0.0, (3,))
-        put(bd.broken_time, "broken_time", np.nan); put(bd.broken_pos, "broken_pos", 0.0, (3,))
-        if b and "broken_time" not in a:
-            bt = bd.broken_time.to_numpy(); bt[:b] = np.nan; bd.broken_time.from_numpy(bt)
+        for key, default in self._BOND_DEFAULTS.items():
+            shape = (b, 3) if key in self._BOND_VECTORS else (b,)
+            arr = np.asarray(a[key]) if key in a else np.full(shape, default)
+            put(getattr(bd, key), arr[order].reshape(shape))
         start = np.zeros(self.n + 1, np.int32)
-        if b:
-            np.add.at(start, np.asarray(a["i"])[order] + 1, 1)
-        bd.start.from_numpy(np.cumsum(start).astype(np.int32))
+        np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
+        put(bd.start, np.cumsum(start))
         bd.total[None] = b
         self.bonds = bd
 
@@ -398,31 +408,28 @@ class Simulation:
         b = int(self.bonds.total[None])
         if b == 0:
             return 0
-        return int(np.count_nonzero(self.bonds.state.to_numpy()[:b] == sk.INTACT))
+        return int(np.count_nonzero(get(self.bonds.state, b) == sk.INTACT))
 
     # ---------------------------------------------------------------- state in / out
     def state_dict(self) -> dict:
         """Everything needed to continue the run bit-exactly, as NumPy arrays (HDF5 layout)."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
-        m, b, nw = int(ct.total[None]), int(bd.total[None]), len(self.walls)
-        d = {
-            "particles/x": p.x.to_numpy(), "particles/v": p.v.to_numpy(), "particles/w": p.w.to_numpy(),
-            "particles/radius": p.radius.to_numpy(), "particles/layer": p.layer.to_numpy(),
-            "particles/inv_mass": p.inv_mass.to_numpy(), "particles/inv_inertia": p.inv_inertia.to_numpy(),
-            "particles/f_ext": p.f_ext.to_numpy(),
-            "contacts/i": ct.i.to_numpy()[:m], "contacts/j": ct.j.to_numpy()[:m],
-            "contacts/impulse": ct.impulse.to_numpy()[:m], "contacts/gap": ct.gap.to_numpy()[:m],
-            "contacts/start": ct.start.to_numpy(),
+        n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
+        d = {"particles/" + k: get(getattr(p, k), n)
+             for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
+        d.update({
+            "contacts/i": get(ct.i, m), "contacts/j": get(ct.j, m),
+            "contacts/impulse": get(ct.impulse, m), "contacts/gap": get(ct.gap, m),
+            "contacts/start": get(ct.start, n + 1),
             "walls/kind": np.array([KINDS[w.kind] for w in self.walls], np.int32),
             "walls/point": np.array([w.position(self.time) for w in self.walls]).reshape(nw, 3),
             "walls/direction": np.array([w.direction for w in self.walls], float).reshape(nw, 3),
             "walls/radius": np.array([w.radius for w in self.walls], float),
             "walls/extent": np.array([w.extent for w in self.walls], float).reshape(nw, 2),
-            "walls/force": wf.force.to_numpy()[:nw],
-        }
-        for key in ("i", "j", "state", "g0", "created", "area", "impulse", "d_t", "hd_n", "hk_n",
-                    "hd_t", "hk_t", "broken_time", "broken_pos"):
-            d["bonds/" + key] = getattr(bd, key).to_numpy()[:b]
+            "walls/force": get(wf.force, nw),
+        })
+        for key in self._BOND_DEFAULTS:
+            d["bonds/" + key] = get(getattr(bd, key), b)
         d["bonds/state"] = d["bonds/state"].astype(np.int8)
         return d
 
@@ -434,16 +441,14 @@ class Simulation:
         if n != self.n:
             raise ValueError(f"state has {n} particles, simulation has {self.n}")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
-            getattr(p, key).from_numpy(np.ascontiguousarray(d["particles/" + key]))
+            put(getattr(p, key), d["particles/" + key])
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
-            self._grow_contacts(int(m * 1.5) + 16)
+            self._grow_contacts(m)
         ct = self.contacts
-        pj = np.zeros(ct.capacity, np.int32); pj[:m] = d["contacts/j"]
-        pr = np.zeros((ct.capacity, 3), backend.numpy_real()); pr[:m] = d["contacts/impulse"]
-        ct.prev_j.from_numpy(pj)
-        ct.prev_impulse.from_numpy(pr)
-        ct.prev_start.from_numpy(np.asarray(d["contacts/start"], np.int32))
+        put(ct.prev_j, d["contacts/j"])
+        put(ct.prev_impulse, d["contacts/impulse"])
+        put(ct.prev_start, d["contacts/start"])
         ct.prev_total[None] = m
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
@@ -457,32 +462,30 @@ class Simulation:
 
     # ---------------------------------------------------------------- convenience readers
     def positions(self) -> np.ndarray:
-        return self.particles.x.to_numpy().astype(float)
+        return get(self.particles.x, self.n).astype(float)
 
     def velocities(self) -> np.ndarray:
-        return self.particles.v.to_numpy().astype(float)
+        return get(self.particles.v, self.n).astype(float)
 
     def angular_velocities(self) -> np.ndarray:
-        return self.particles.w.to_numpy().astype(float)
+        return get(self.particles.w, self.n).astype(float)
 
     def radii(self) -> np.ndarray:
-        return self.particles.radius.to_numpy().astype(float)
+        return get(self.particles.radius, self.n).astype(float)
 
     def wall_force(self, k: int) -> np.ndarray:
         return self.wall_fields.force[k].to_numpy().astype(float)
 
     def set_external_force(self, force) -> None:
-        f = np.zeros((self.n, 3)) + np.asarray(force, dtype=float)
-        self.particles.f_ext.from_numpy(f.astype(backend.numpy_real()))
+        put(self.particles.f_ext, np.zeros((self.n, 3)) + np.asarray(force, dtype=float))
 
     def set_velocities(self, v) -> None:
-        v = np.zeros((self.n, 3)) + np.asarray(v, dtype=float)
-        self.particles.v.from_numpy(v.astype(backend.numpy_real()))
+        put(self.particles.v, np.zeros((self.n, 3)) + np.asarray(v, dtype=float))
 
     def contact_arrays(self) -> dict:
         ct = self.contacts
         m = int(ct.total[None])
-        return {"i": ct.i.to_numpy()[:m], "j": ct.j.to_numpy()[:m],
-                "impulse": ct.impulse.to_numpy()[:m].astype(float),
-                "normal": ct.normal.to_numpy()[:m].astype(float),
-                "gap": ct.gap.to_numpy()[:m].astype(float)}
+        return {"i": get(ct.i, m), "j": get(ct.j, m),
+                "impulse": get(ct.impulse, m).astype(float),
+                "normal": get(ct.normal, m).astype(float),
+                "gap": get(ct.gap, m).astype(float)}

@@ -26,10 +26,10 @@ MODE_PAPER, MODE_BURGERS = 0, 1
 @ti.func
 def point_velocity(p: ti.template(), wl: ti.template(), b, offset):
     u = ti.Vector([0.0, 0.0, 0.0])
-    if b < p.n:
+    if b < p.count[None]:
         u = p.v[b] + p.w[b].cross(offset)
     else:
-        u = wl.velocity[b - p.n]
+        u = wl.velocity[b - p.count[None]]
     return u
 
 
@@ -39,7 +39,7 @@ def apply_impulse(p: ti.template(), i, j, n, dr):
     ri = p.radius[i]
     p.v[i] -= dr * p.inv_mass[i]
     p.w[i] -= p.inv_inertia[i] * (ri * n).cross(dr)
-    if j < p.n:
+    if j < p.count[None]:
         rj = p.radius[j]
         p.v[j] += dr * p.inv_mass[j]
         p.w[j] += p.inv_inertia[j] * (-rj * n).cross(dr)
@@ -48,7 +48,7 @@ def apply_impulse(p: ti.template(), i, j, n, dr):
 @ti.func
 def relative_velocity(p: ti.template(), wl: ti.template(), i, j, n):
     rj = 0.0
-    if j < p.n:
+    if j < p.count[None]:
         rj = p.radius[j]
     return point_velocity(p, wl, j, -rj * n) - (p.v[i] + p.w[i].cross(p.radius[i] * n))
 
@@ -101,7 +101,7 @@ def solve_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
 def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
     """Keep the beginning-of-step velocities; add the impulse of external forces."""
     g = ti.Vector([gx, gy, gz])
-    for i in range(p.n):
+    for i in range(p.count[None]):
         p.v_old[i] = p.v[i]
         p.w_old[i] = p.w[i]
         if p.inv_mass[i] > 0.0:
@@ -130,11 +130,20 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     while done == 0:
         dsum = 0.0
         rsum = 0.0
-        for b in range(nb):
+        # symmetric Gauss-Seidel: forward sweeps alternate with backward ones, so loads
+        # propagate both ways along the (height-correlated) particle order
+        backward = sweeps % 2
+        for bb in range(nb):
+            b = bb
+            if backward == 1:
+                b = nb - 1 - bb
             da, ra = solve_bond(p, wl, bd, b)
             dsum += da
             rsum += ra
-        for k in range(nc):
+        for kk in range(nc):
+            k = kk
+            if backward == 1:
+                k = nc - 1 - kk
             da, ra = solve_contact(p, wl, ct, k)
             dsum += da
             rsum += ra
@@ -333,7 +342,7 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
 # --- integration and wall forces ---------------------------------------------------------------
 @ti.kernel
 def integrate(p: ti.template(), h: float, theta: float):
-    for i in range(p.n):
+    for i in range(p.count[None]):
         p.x[i] += h * (theta * p.v[i] + (1.0 - theta) * p.v_old[i])
 
 
@@ -344,6 +353,6 @@ def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float
     for w in range(wl.count[None]):
         s = ti.Vector([0.0, 0.0, 0.0])
         for k in range(ct.total[None]):
-            if ct.j[k] == p.n + w:
+            if ct.j[k] == p.count[None] + w:
                 s += ct.impulse[k]
         wl.force[w] = s / h

@@ -1,8 +1,11 @@
 """Field containers: particles, walls, the broad-phase grid, contacts and bonds.
 
-Struct-of-arrays Taichi fields grouped in small data-oriented classes. A container is passed to
-kernels as a template argument, so when a capacity-limited container overflows the simulation
-builds a bigger one and the kernels are specialised for it; nothing is silently truncated.
+Struct-of-arrays Taichi fields grouped in small data-oriented classes, passed to kernels as
+template arguments. Sizes that change between runs (particle count, grid shape, totals) are
+runtime scalars inside the containers, and capacities come in power-of-two classes: containers
+are recycled through a pool (`acquire` / `release`), so a new simulation of a similar size reuses
+fields and compiled kernels instead of compiling again (seconds per kernel set). A container
+that overflows is replaced by one of a larger class; nothing is silently truncated.
 All real fields use the precision chosen by `tcd.init`.
 """
 from __future__ import annotations
@@ -17,30 +20,90 @@ COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
 
 
+def capacity_class(n: int, minimum: int = 64) -> int:
+    """Smallest power of two >= max(n, minimum)."""
+    c = minimum
+    while c < n:
+        c *= 2
+    return c
+
+
 def _vec(n):
-    return ti.Vector.field(3, backend.real(), shape=max(n, 1))
+    return ti.Vector.field(3, backend.real(), shape=n)
 
 
 def _real(n):
-    return ti.field(backend.real(), shape=max(n, 1))
+    return ti.field(backend.real(), shape=n)
 
 
 def _int(n, dtype=ti.i32):
-    return ti.field(dtype, shape=max(n, 1))
+    return ti.field(dtype, shape=n)
+
+
+def _scalar(dtype=ti.i32):
+    return ti.field(dtype, shape=())
+
+
+_pool: dict = {}
+
+
+def acquire(cls, capacity: int, *args):
+    """A container of `cls` with at least `capacity` slots, recycled when one is free."""
+    cap = capacity_class(capacity)
+    free = _pool.setdefault((cls, cap) + args, [])
+    obj = free.pop() if free else cls(cap, *args)
+    obj.reset()
+    return obj
+
+
+def release(obj) -> None:
+    if obj is not None:
+        _pool.setdefault((type(obj), obj.capacity) + obj.pool_args, []).append(obj)
+
+
+def get(field, n):
+    """First n rows of a field as NumPy."""
+    return field.to_numpy()[:n]
+
+
+def put(field, values) -> None:
+    """Write `values` into the first rows of a field (the rest is zeroed)."""
+    values = np.asarray(values)
+    shape = field.shape + ((field.n,) if isinstance(field, ti.MatrixField) else ())
+    full = np.zeros(shape, _np_dtype(field))
+    full[: len(values)] = values
+    field.from_numpy(full)
+
+
+def _np_dtype(field):
+    dt = field.dtype
+    if dt == ti.f64:
+        return np.float64
+    if dt == ti.f32:
+        return np.float32
+    if dt == ti.u32:
+        return np.uint32
+    return np.int32
 
 
 @ti.data_oriented
 class Particles:
-    """Rigid spheres. n: count. Model: radius (m), inv_mass (1/kg), inv_inertia (1/(kg m^2)),
-    layer (0 bottom course, 1 top course), external force f_ext (N). State: x (m), v (m/s),
-    w (rad/s); v_old, w_old hold the velocities at the beginning of the step."""
+    """Rigid spheres; count: how many of the `capacity` slots are used. Model: radius (m),
+    inv_mass (1/kg), inv_inertia (1/(kg m^2)), layer (0 bottom course, 1 top course), external
+    force f_ext (N). State: x (m), v (m/s), w (rad/s); v_old, w_old hold the velocities at the
+    beginning of the step."""
+    pool_args = ()
 
-    def __init__(self, n: int):
-        self.n = n
-        self.x, self.v, self.w = _vec(n), _vec(n), _vec(n)
-        self.v_old, self.w_old, self.f_ext = _vec(n), _vec(n), _vec(n)
-        self.radius, self.inv_mass, self.inv_inertia = _real(n), _real(n), _real(n)
-        self.layer = _int(n)
+    def __init__(self, capacity: int):
+        c = self.capacity = capacity
+        self.x, self.v, self.w = _vec(c), _vec(c), _vec(c)
+        self.v_old, self.w_old, self.f_ext = _vec(c), _vec(c), _vec(c)
+        self.radius, self.inv_mass, self.inv_inertia = _real(c), _real(c), _real(c)
+        self.layer = _int(c)
+        self.count = _scalar()
+
+    def reset(self):
+        self.count[None] = 0
 
 
 @ti.data_oriented
@@ -48,32 +111,48 @@ class WallFields:
     """Device copy of the walls: kind (0 plane, 1 cylinder), point, direction, radius, axial
     range lo/hi, friction, velocity over the current step (m/s) and force from the particles
     over the last step (N)."""
+    pool_args = ()
 
-    def __init__(self):
-        m = MAX_WALLS
+    def __init__(self, capacity: int = MAX_WALLS):
+        m = self.capacity = capacity
         self.kind = _int(m)
         self.point, self.direction, self.velocity, self.force = _vec(m), _vec(m), _vec(m), _vec(m)
         self.radius, self.lo, self.hi, self.friction = _real(m), _real(m), _real(m), _real(m)
-        self.count = ti.field(ti.i32, shape=())
+        self.count = _scalar()
+
+    def reset(self):
+        self.count[None] = 0
+        self.force.fill(0)
 
 
 @ti.data_oriented
 class Grid:
     """Uniform grid for the broad phase (counting sort of particles by the cells their
-    enlarged bounding box overlaps). origin (m), cell (m) and dims are compile-time constants
-    of the kernels; items has capacity `capacity` (particle-cell incidences)."""
+    enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims, ncells;
+    `cell_capacity` cells and `capacity` particle-cell incidences."""
+    pool_args = ()
 
-    def __init__(self, origin, cell: float, dims, capacity: int):
-        self.origin = tuple(float(o) for o in origin)
-        self.cell = float(cell)
-        self.inv_cell = 1.0 / float(cell)
-        self.dims = tuple(int(d) for d in dims)
-        self.ncells = self.dims[0] * self.dims[1] * self.dims[2]
+    def __init__(self, capacity: int, cell_capacity: int | None = None):
         self.capacity = capacity
-        self.cell_count = _int(self.ncells)
-        self.cell_start = _int(self.ncells + 1)
+        cc = self.cell_capacity = cell_capacity or capacity
+        self.cell_count, self.cell_start = _int(cc), _int(cc + 1)
         self.items = _int(capacity)
-        self.total = ti.field(ti.i32, shape=())
+        self.origin = ti.Vector.field(3, backend.real(), shape=())
+        self.dims = ti.Vector.field(3, ti.i32, shape=())
+        self.inv_cell = _scalar(backend.real())
+        self.ncells = _scalar()
+
+    def reset(self):
+        self.ncells[None] = 0
+
+    def configure(self, origin, cell: float, dims) -> None:
+        ncells = int(np.prod(dims))
+        if ncells > self.cell_capacity:
+            raise ValueError("grid has fewer cells than requested")
+        self.origin[None] = [float(o) for o in origin]
+        self.dims[None] = [int(d) for d in dims]
+        self.inv_cell[None] = 1.0 / float(cell)
+        self.ncells[None] = ncells
 
 
 @ti.data_oriented
@@ -81,21 +160,26 @@ class Contacts:
     """Frictional contacts of one step, in canonical order: grouped by first particle i
     (ascending), then partner j ascending (particles, then walls as j = N + wall index).
 
-    Per contact: i, j, normal n (i to j), g_beg (gap at the predicted configuration, m),
+    Per contact: i, j, normal n (i to j), gap g_beg at the predicted configuration (m),
     rhs = max(g_beg, 0) / (theta H) (m/s), wnn, wtt (Delassus diagonal, 1/kg), mu, impulse R
-    (N s, global vector), colour. Per particle: count and start (CSR). The previous step's
-    (j, R, start) are kept in prev_* for warm starting."""
+    (N s, global vector), colour. Per particle: count and start (CSR, `particle_capacity`).
+    The previous step's (j, R, start) are kept in prev_* for warm starting."""
 
-    def __init__(self, n: int, capacity: int):
-        self.n, self.capacity = n, capacity
-        c = capacity
+    def __init__(self, capacity: int, particle_capacity: int):
+        self.capacity, self.pool_args = capacity, (particle_capacity,)
+        c, n = capacity, particle_capacity
         self.i, self.j, self.colour = _int(c), _int(c), _int(c)
         self.normal, self.impulse = _vec(c), _vec(c)
         self.gap, self.rhs, self.wnn, self.wtt, self.mu = _real(c), _real(c), _real(c), _real(c), _real(c)
         self.count, self.start = _int(n), _int(n + 1)
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
-        self.total = ti.field(ti.i32, shape=())
-        self.prev_total = ti.field(ti.i32, shape=())
+        self.total = _scalar()
+        self.prev_total = _scalar()
+
+    def reset(self):
+        self.total[None] = 0
+        self.prev_total[None] = 0
+        self.prev_start.fill(0)
 
 
 @ti.data_oriented
@@ -110,8 +194,8 @@ class Bonds:
     Per step: normal, rhs_n, rhs_t (displacement terms / (theta H)), cn, ct (extra compliance
     1/(theta H^2 K)), wnn, wtt, d_t_beg."""
 
-    def __init__(self, n: int, capacity: int):
-        self.n, self.capacity = n, capacity
+    def __init__(self, capacity: int, particle_capacity: int):
+        self.capacity, self.pool_args = capacity, (particle_capacity,)
         c = capacity
         self.i, self.j, self.state = _int(c), _int(c), _int(c)
         self.g0, self.created, self.area = _real(c), _real(c), _real(c)
@@ -120,8 +204,12 @@ class Bonds:
         self.broken_time, self.broken_pos = _real(c), _vec(c)
         self.normal, self.rhs_t, self.d_t_beg = _vec(c), _vec(c), _vec(c)
         self.rhs_n, self.cn, self.ct, self.wnn, self.wtt = _real(c), _real(c), _real(c), _real(c), _real(c)
-        self.start = _int(n + 1)
-        self.total = ti.field(ti.i32, shape=())
+        self.start = _int(particle_capacity + 1)
+        self.total = _scalar()
+
+    def reset(self):
+        self.total[None] = 0
+        self.start.fill(0)
 
 
 @ti.data_oriented
@@ -130,30 +218,40 @@ class ColourSet:
     colours (bit set); item_colour; order: items sorted by colour; start: CSR per colour;
     change: per item (|dR|, |R|) of the last sweep, for the residual."""
 
-    def __init__(self, n: int, capacity: int):
-        self.n, self.capacity = n, capacity
-        self.mask = ti.field(ti.u32, shape=(max(n, 1), COLOUR_WORDS))
+    def __init__(self, capacity: int, particle_capacity: int):
+        self.capacity, self.pool_args = capacity, (particle_capacity,)
+        self.mask = ti.field(ti.u32, shape=(particle_capacity, COLOUR_WORDS))
         self.item_colour, self.order = _int(capacity), _int(capacity)
         self.start, self.cursor = _int(MAX_COLOURS + 1), _int(MAX_COLOURS)
-        self.change = ti.Vector.field(2, backend.real(), shape=max(capacity, 1))
+        self.change = ti.Vector.field(2, backend.real(), shape=capacity)
+
+    def reset(self):
+        pass
 
 
 @ti.data_oriented
 class SolverStats:
     """Per-step solver record: sweeps used, final residual, colours used."""
+    pool_args = ()
 
-    def __init__(self):
-        self.sweeps = ti.field(ti.i32, shape=())
-        self.residual = ti.field(backend.real(), shape=())
-        self.colours = ti.field(ti.i32, shape=())
-        self.colour_overflow = ti.field(ti.i32, shape=())
+    def __init__(self, capacity: int = 1):
+        self.capacity = capacity
+        self.sweeps = _scalar()
+        self.residual = _scalar(backend.real())
+        self.colours = _scalar()
+        self.colour_overflow = _scalar()
+
+    def reset(self):
+        self.sweeps[None] = 0
+        self.residual[None] = 0.0
 
 
 def field_bytes(obj) -> int:
     """Bytes held by the Taichi fields of a container (for memory reports)."""
     total = 0
     for v in vars(obj).values():
-        if isinstance(v, (ti.Field, ti.MatrixField)):
-            total += int(np.prod(v.shape)) * (v.n * v.m if isinstance(v, ti.MatrixField) else 1) * \
-                     (8 if v.dtype in (ti.f64, ti.i64, ti.u64) else 4)
+        if isinstance(v, ti.MatrixField):
+            total += int(np.prod(v.shape)) * v.n * v.m * np.dtype(_np_dtype(v)).itemsize
+        elif isinstance(v, ti.Field):
+            total += int(np.prod(v.shape)) * np.dtype(_np_dtype(v)).itemsize
     return total

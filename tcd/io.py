@@ -1,0 +1,674 @@
+"""HDF5 states, time series and checkpoints, written crash-safe (NumPy and h5py only, no Taichi).
+
+Every file tcd writes is replaced atomically: the new content goes to a temporary file in the
+same directory (``.<name>.<random>.tmp``), which is flushed, fsync'ed and then ``os.replace``d
+over the target; the directory is fsync'ed afterwards. Appending a frame copies the existing file
+to the temporary file first and appends there. Invariant: whatever interrupts a write (an
+exception, Ctrl-C, SIGKILL, a full disk), the target path holds either the complete previous file
+or the complete new one, never a mix. An exception removes the temporary file; a SIGKILL may leave
+one behind (``.*.tmp``), which is harmless and may be deleted. The cost of this guarantee is that
+an append rewrites the whole file, so states files are meant for snapshots, not every step.
+There is one writer per file; two processes appending to the same file concurrently lose frames.
+
+Schema version 1
+----------------
+Every HDF5 file has the root attributes ``schema_version`` (= 1), ``tcd_file`` (``"states"``,
+``"series"`` or ``"checkpoint"``), ``tcd_version`` and ``created`` (ISO 8601, UTC). Every dataset
+of a states or series file has a ``units`` attribute (SI: "m", "m/s", "rad/s", "N", "N s", "s";
+"1" for dimensionless numbers, indices and codes).
+
+``states.h5`` (snapshots of the granular sample)
+    root attributes: as above, plus ``scenario`` (the scenario TOML text).
+    ``frames/000000``, ``frames/000001``, ...: one group per snapshot, named by its 0-based index
+    in 6 digits (more digits past 999999), with attributes ``time`` (s, float), ``time_units``
+    ("s"), ``step`` (int) and ``stage`` (str), holding the datasets
+
+    ========================  ======  =======  ====================================================
+    dataset                   shape   units    meaning
+    ========================  ======  =======  ====================================================
+    particles/x               (N,3)   m        centre positions (required in every frame)
+    particles/v               (N,3)   m/s      translational velocities
+    particles/w               (N,3)   rad/s    angular velocities
+    particles/radius          (N,)    m        radii
+    particles/layer           (N,)    1        int32, compaction layer the particle was poured in
+    walls/kind                (W,)    1        int32, 0 plane, 1 cylinder shell
+    walls/point               (W,3)   m        point on the plane / on the cylinder axis
+    walls/direction           (W,3)   1        unit normal into the sample / unit cylinder axis
+    walls/radius              (W,)    m        cylinder inner radius / plane plate size (drawing)
+    walls/extent              (W,2)   m        cylinder axial range (lo, hi) relative to point
+    walls/force               (W,3)   N        force the particles exert on the wall
+    contacts/i, contacts/j    (M,)    1        int32 body indices; j >= N means wall j - N
+    contacts/impulse          (M,3)   N s      impulse on body j over the last step (global)
+    contacts/gap              (M,)    m        signed gap (negative: interpenetration)
+    bonds/i, bonds/j          (B,)    1        int32 particle indices
+    bonds/state               (B,)    1        int8, 0 intact, 1 broken in tension, 2 in shear
+    bonds/impulse             (B,3)   N s      bond impulse over the last step (global)
+    bonds/broken_time         (B,)    s        time of breakage, NaN while intact
+    bonds/broken_position     (B,3)   m        position of breakage (NaN while intact)
+    ========================  ======  =======  ====================================================
+
+    A frame is passed as a flat dict keyed by these paths. Any group is optional except
+    ``particles/x``. Extra keys are stored as datasets too (``"bonds/history_n"``,
+    ``"diagnostics/residual"``); inside the four groups above their first axis must have the
+    group's length (N, W, M or B). Units of extra keys come from the ``units`` argument, "1" by
+    default. Real-valued schema fields keep their floating dtype (float32 or float64, stored and
+    read back bit-exact); integer schema fields are stored with the dtype given above, converted
+    from any integer dtype whose values fit.
+
+``series.h5`` (time series of observables)
+    root attributes: as above, plus any ``attrs`` given to :func:`write_series` (strings, numbers
+    and numeric arrays as they are, other values as JSON text). One dataset per key, all with the
+    same first-axis length, each with ``units``. An optional CSV twin has a header row
+    ``time [s],force_top [N],...`` and one row per sample.
+
+``checkpoint.h5`` (restart data for the runner)
+    ``arrays/<key>``: each array bit-exact (any dtype h5py can store, any shape, 0-length
+    included); root attribute ``meta``: JSON text (NaN kept as the JSON extension token ``NaN``).
+
+Errors: a missing file raises FileNotFoundError; a file that is not HDF5, not a tcd file of the
+expected kind or of another schema version raises ValueError; a frame index out of range raises
+IndexError; an inconsistent frame or series raises ValueError naming the key, before anything
+touches the disk. Every message names the path.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import datetime
+import errno
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+
+import h5py
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+WALL_PLANE, WALL_CYLINDER = 0, 1
+BOND_INTACT, BOND_BROKEN_TENSION, BOND_BROKEN_SHEAR = 0, 1, 2
+
+FILE_STATES, FILE_SERIES, FILE_CHECKPOINT = "states", "series", "checkpoint"
+
+# group -> symbol of its length in the schema table above
+GROUP_SIZE_SYMBOL = {"particles": "N", "walls": "W", "contacts": "M", "bonds": "B"}
+
+# key -> (units, dtype (None: any floating dtype), trailing shape)
+FRAME_SCHEMA = {
+    "particles/x": ("m", None, (3,)),
+    "particles/v": ("m/s", None, (3,)),
+    "particles/w": ("rad/s", None, (3,)),
+    "particles/radius": ("m", None, ()),
+    "particles/layer": ("1", np.int32, ()),
+    "walls/kind": ("1", np.int32, ()),
+    "walls/point": ("m", None, (3,)),
+    "walls/direction": ("1", None, (3,)),
+    "walls/radius": ("m", None, ()),
+    "walls/extent": ("m", None, (2,)),
+    "walls/force": ("N", None, (3,)),
+    "contacts/i": ("1", np.int32, ()),
+    "contacts/j": ("1", np.int32, ()),
+    "contacts/impulse": ("N s", None, (3,)),
+    "contacts/gap": ("m", None, ()),
+    "bonds/i": ("1", np.int32, ()),
+    "bonds/j": ("1", np.int32, ()),
+    "bonds/state": ("1", np.int8, ()),
+    "bonds/impulse": ("N s", None, (3,)),
+    "bonds/broken_time": ("s", None, ()),
+    "bonds/broken_position": ("m", None, (3,)),
+}
+
+_FRAME_META_KEYS = ("time", "step", "stage")
+_ROOT_ATTRS = ("schema_version", "tcd_file", "tcd_version", "created", "scenario", "meta")
+_STORABLE_KINDS = "biufcSV"  # bool, ints, floats, complex, bytes, compound; not object/unicode
+
+_umask = os.umask(0)
+os.umask(_umask)
+
+
+# --- atomic writes ---------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yield a temporary path beside `path`; on success fsync it and ``os.replace`` it onto `path`.
+
+    The temporary file exists (empty) when the body starts; the body writes it and closes it. On
+    any exception, KeyboardInterrupt included, the temporary file is removed, `path` is untouched
+    and the exception propagates. The result gets the mode of the file it replaces (or the default
+    mode from the umask).
+    """
+    target = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(target))
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp",
+                               dir=directory)
+    os.close(fd)
+    try:
+        yield tmp
+        try:
+            mode = os.stat(target).st_mode & 0o7777
+        except FileNotFoundError:
+            mode = 0o666 & ~_umask
+        os.chmod(tmp, mode)
+        _fsync_file(tmp)
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+    _fsync_dir(directory)
+
+
+def _fsync_file(path):
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(directory):
+    # Makes the rename durable; not every platform/filesystem allows fsync on a directory.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# --- JSON ------------------------------------------------------------------------------------
+def _json_default(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def _json_finite(obj):
+    """Copy of `obj` with NaN and infinities replaced by None (JSON has no such numbers)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_finite(v) for v in obj]
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return _json_finite(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def write_json(path, obj) -> None:
+    """Write `obj` as JSON (indent 2, NaN and infinities as null), atomically."""
+    text = json.dumps(_json_finite(obj), indent=2, allow_nan=False, default=_json_default)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+
+
+# --- shared checks ---------------------------------------------------------------------------
+def _now_iso() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _default_version(tcd_version: str) -> str:
+    # Use the package's version when it is already loaded; never import it (it imports Taichi).
+    if tcd_version:
+        return str(tcd_version)
+    return str(getattr(sys.modules.get("tcd"), "__version__", ""))
+
+
+def _check_dataset_key(key, where: str, *, need_group: bool) -> str:
+    if not isinstance(key, str):
+        raise ValueError(f"{where}: key {key!r} is not a string")
+    parts = key.split("/")
+    if key.startswith("/") or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(f"{where}: key {key!r} is not a valid dataset path")
+    if need_group and len(parts) < 2:
+        raise ValueError(f"{where}: key {key!r} must name a group, e.g. 'particles/{key}'")
+    return key
+
+
+def _as_storable(key: str, value, where: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in _STORABLE_KINDS:
+        raise ValueError(f"{where}: key {key!r} has dtype {arr.dtype}, which HDF5 cannot store "
+                         f"(use numbers or bytes)")
+    return arr
+
+
+def _open_tcd(path, kind: str) -> h5py.File:
+    """Open `path` read-only after checking it is a tcd file of `kind` and schema version 1."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(errno.ENOENT, f"no such tcd {kind} file", path)
+    if os.path.isdir(path) or not h5py.is_hdf5(path):
+        raise ValueError(f"{path}: not an HDF5 file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise ValueError(f"{path}: HDF5 file cannot be opened (truncated or corrupt?): {exc}") \
+            from exc
+    try:
+        _check_schema(f, path, kind)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def _check_schema(f: h5py.File, path: str, kind: str | None) -> str:
+    version = f.attrs.get("schema_version")
+    if version is None:
+        raise ValueError(f"{path}: missing schema_version attribute (not a tcd file)")
+    if np.ndim(version) != 0 or int(version) != SCHEMA_VERSION:
+        raise ValueError(f"{path}: unknown schema_version {version!r} "
+                         f"(this tcd reads version {SCHEMA_VERSION})")
+    found = _file_kind(f)
+    if found is None:
+        raise ValueError(f"{path}: schema_version {SCHEMA_VERSION} but no tcd_file attribute")
+    if kind is not None and found != kind:
+        raise ValueError(f"{path}: is a tcd {found} file, expected a {kind} file")
+    return found
+
+
+def _file_kind(f: h5py.File) -> str | None:
+    kind = f.attrs.get("tcd_file")
+    if kind is not None:
+        return kind.decode() if isinstance(kind, bytes) else str(kind)
+    if "frames" in f:  # written by hand without the tcd_file attribute
+        return FILE_STATES
+    return None
+
+
+def _datasets(group: h5py.Group) -> dict:
+    """All datasets under `group`, keyed by their path relative to it, read as NumPy arrays."""
+    out = {}
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            out[name] = np.asarray(obj[()])
+
+    group.visititems(visit)
+    return out
+
+
+def _units_attr(obj) -> str:
+    u = obj.attrs.get("units", "")
+    return u.decode() if isinstance(u, bytes) else str(u)
+
+
+# --- states ----------------------------------------------------------------------------------
+def _check_frame(frame: dict, units: dict | None, *, time, step, stage) -> list:
+    """Validate a frame; return [(key, array, units)] ready to store. Raises ValueError."""
+    where = "frame"
+    if not isinstance(frame, dict):
+        raise ValueError(f"{where}: expected a dict of arrays, got {type(frame).__name__}")
+    units = dict(units or {})
+    for key, unit in units.items():
+        if key in FRAME_SCHEMA and unit != FRAME_SCHEMA[key][0]:
+            raise ValueError(f"{where}: units {unit!r} for {key!r} contradict the schema "
+                             f"({FRAME_SCHEMA[key][0]!r})")
+    if "particles/x" not in frame:
+        raise ValueError(f"{where}: key 'particles/x' is required")
+    try:
+        float(time)
+        if int(step) != step:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: time must be a number and step an integer, "
+                         f"got time={time!r}, step={step!r}") from None
+    if not isinstance(stage, str):
+        raise ValueError(f"{where}: stage must be a string, got {stage!r}")
+
+    sizes: dict[str, tuple[int, str]] = {}  # group -> (length, key that fixed it)
+    prepared = []
+    for key, value in frame.items():
+        _check_dataset_key(key, where, need_group=True)
+        arr = _as_storable(key, value, where)
+        group = key.split("/", 1)[0]
+        if key in FRAME_SCHEMA:
+            unit, dtype, trailing = FRAME_SCHEMA[key]
+            expected = f"({GROUP_SIZE_SYMBOL[group]}{''.join(f',{t}' for t in trailing)})"
+            if arr.ndim != 1 + len(trailing) or arr.shape[1:] != trailing:
+                raise ValueError(f"{where}: key {key!r} has shape {arr.shape}, expected {expected}")
+            if dtype is None:
+                if arr.dtype.kind != "f":
+                    raise ValueError(f"{where}: key {key!r} has dtype {arr.dtype}, "
+                                     f"expected float32 or float64")
+            else:
+                arr = _to_int(key, arr, dtype, where)
+        else:
+            unit = str(units.get(key, "1"))
+        if group in GROUP_SIZE_SYMBOL and arr.ndim >= 1:
+            length, first = sizes.setdefault(group, (arr.shape[0], key))
+            if arr.shape[0] != length:
+                raise ValueError(f"{where}: key {key!r} has length {arr.shape[0]} but {first!r} "
+                                 f"has {length} ({GROUP_SIZE_SYMBOL[group]} must agree)")
+        prepared.append((key, arr, unit))
+
+    n = sizes["particles"][0]
+    n_walls = sizes.get("walls", (0, ""))[0]
+    arrays = {key: arr for key, arr, _ in prepared}
+    for key, upper in (("contacts/i", n), ("contacts/j", n + n_walls),
+                       ("bonds/i", n), ("bonds/j", n)):
+        idx = arrays.get(key)
+        if idx is not None and idx.size and (idx.min() < 0 or idx.max() >= upper):
+            raise ValueError(f"{where}: key {key!r} has indices in [{idx.min()}, {idx.max()}], "
+                             f"expected [0, {upper}) with N={n}, W={n_walls}")
+    state = arrays.get("bonds/state")
+    if state is not None and state.size and not np.isin(
+            state, (BOND_INTACT, BOND_BROKEN_TENSION, BOND_BROKEN_SHEAR)).all():
+        raise ValueError(f"{where}: key 'bonds/state' has values outside {{0, 1, 2}}")
+    return prepared
+
+
+def _to_int(key: str, arr: np.ndarray, dtype, where: str) -> np.ndarray:
+    if arr.dtype == dtype:
+        return arr
+    if arr.dtype.kind not in "iu":
+        raise ValueError(f"{where}: key {key!r} has dtype {arr.dtype}, expected {np.dtype(dtype)}")
+    info_ = np.iinfo(dtype)
+    if arr.size and (arr.min() < info_.min or arr.max() > info_.max):
+        raise ValueError(f"{where}: key {key!r} has values outside the {np.dtype(dtype)} range")
+    return arr.astype(dtype)
+
+
+def _frame_names(f: h5py.File, path: str) -> list[str]:
+    frames = f.get("frames")
+    if not isinstance(frames, h5py.Group):
+        raise ValueError(f"{path}: states file without a 'frames' group")
+    names = list(frames.keys())
+    if not all(name.isdigit() for name in names):
+        raise ValueError(f"{path}: unexpected group names under 'frames': {names[:5]}")
+    return sorted(names, key=int)
+
+
+def append_frame(path, frame: dict, *, time, step, stage, scenario_text: str = "",
+                 tcd_version: str = "", units: dict | None = None) -> int:
+    """Append one snapshot to the states file `path` (created if absent); return its index.
+
+    `frame` maps dataset paths ("particles/x", ...) to arrays (see the module docstring).
+    `scenario_text` and `tcd_version` are stored when the file is created and ignored after.
+    `units` gives units of extra keys; entries for keys not in `frame` are ignored.
+    """
+    path = os.fspath(path)
+    prepared = _check_frame(frame, units, time=time, step=step, stage=stage)
+    if os.path.exists(path):
+        with _open_tcd(path, FILE_STATES) as f:
+            index = len(_frame_names(f, path))
+        with atomic_path(path) as tmp:
+            shutil.copyfile(path, tmp)
+            with h5py.File(tmp, "a") as f:
+                _write_frame(f, index, prepared, time, step, stage)
+    else:
+        index = 0
+        with atomic_path(path) as tmp:
+            with h5py.File(tmp, "w") as f:
+                f.attrs["schema_version"] = SCHEMA_VERSION
+                f.attrs["tcd_file"] = FILE_STATES
+                f.attrs["tcd_version"] = _default_version(tcd_version)
+                f.attrs["scenario"] = str(scenario_text)
+                f.attrs["created"] = _now_iso()
+                f.create_group("frames")
+                _write_frame(f, index, prepared, time, step, stage)
+    return index
+
+
+def _write_frame(f: h5py.File, index: int, prepared: list, time, step, stage) -> None:
+    group = f["frames"].create_group(f"{index:06d}")
+    group.attrs["time"] = float(time)
+    group.attrs["time_units"] = "s"
+    group.attrs["step"] = int(step)
+    group.attrs["stage"] = stage
+    for key, arr, unit in prepared:
+        ds = group.create_dataset(key, data=arr)
+        ds.attrs["units"] = unit
+
+
+def frame_count(path) -> int:
+    """Number of frames in the states file `path`."""
+    with _open_tcd(path, FILE_STATES) as f:
+        return len(_frame_names(f, os.fspath(path)))
+
+
+def read_frame(path, index: int = -1) -> dict:
+    """Frame `index` (negative counts from the end) as the flat dict it was written from.
+
+    Arrays come back with the dtype and bytes they were stored with; the keys "time" (float),
+    "step" (int) and "stage" (str) are added.
+    """
+    path = os.fspath(path)
+    with _open_tcd(path, FILE_STATES) as f:
+        names = _frame_names(f, path)
+        count = len(names)
+        k = int(index) + count if int(index) < 0 else int(index)
+        if not 0 <= k < count:
+            raise IndexError(f"{path}: frame index {index} out of range ({count} frames)")
+        group = f["frames"][names[k]]
+        out = _datasets(group)
+        out["time"] = float(group.attrs["time"])
+        out["step"] = int(group.attrs["step"])
+        out["stage"] = str(group.attrs["stage"])
+    return out
+
+
+# --- time series -----------------------------------------------------------------------------
+def write_series(path_h5, series: dict, *, units: dict | None = None, attrs: dict | None = None,
+                 csv_path=None, csv_keys=None) -> None:
+    """Write time series (one dataset per key, same first-axis length) atomically.
+
+    `units` maps keys to unit strings ("1" by default; entries for absent keys are ignored).
+    `attrs` become root attributes. With `csv_path`, a CSV twin holds the 1-D columns `csv_keys`
+    (all 1-D keys by default) under a header "key [units]".
+    """
+    path_h5 = os.fspath(path_h5)
+    where = "series"
+    units = dict(units or {})
+    arrays = {}
+    length, first = None, None
+    for key, value in series.items():
+        _check_dataset_key(key, where, need_group=False)
+        arr = _as_storable(key, value, where)
+        if arr.ndim < 1:
+            raise ValueError(f"{where}: key {key!r} is a scalar, expected an array over samples")
+        if length is None:
+            length, first = arr.shape[0], key
+        elif arr.shape[0] != length:
+            raise ValueError(f"{where}: key {key!r} has length {arr.shape[0]} but {first!r} "
+                             f"has {length}")
+        arrays[key] = arr
+    root_attrs = {}
+    for name, value in (attrs or {}).items():
+        if name in _ROOT_ATTRS:
+            raise ValueError(f"{where}: attribute {name!r} is reserved")
+        root_attrs[str(name)] = _attr_value(value)
+    if csv_keys is not None and csv_path is None:
+        raise ValueError(f"{where}: csv_keys given without csv_path")
+    if csv_path is not None:
+        if csv_keys is None:
+            csv_keys = [k for k, a in arrays.items() if a.ndim == 1]
+        for key in csv_keys:
+            if key not in arrays:
+                raise ValueError(f"{where}: csv key {key!r} is not a series key")
+            if arrays[key].ndim != 1:
+                raise ValueError(f"{where}: csv key {key!r} has shape {arrays[key].shape}, "
+                                 f"only 1-D series fit a CSV column")
+
+    with atomic_path(path_h5) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["tcd_file"] = FILE_SERIES
+            f.attrs["tcd_version"] = _default_version("")
+            f.attrs["created"] = _now_iso()
+            for name, value in root_attrs.items():
+                f.attrs[name] = value
+            for key, arr in arrays.items():
+                ds = f.create_dataset(key, data=arr)
+                ds.attrs["units"] = str(units.get(key, "1"))
+    if csv_path is not None:
+        with atomic_path(csv_path) as tmp:
+            with open(tmp, "w", newline="", encoding="utf-8") as fh:
+                writer = csv.writer(fh)
+                writer.writerow([f"{k} [{units.get(k, '1')}]" for k in csv_keys])
+                columns = [arrays[k] for k in csv_keys]
+                for row in zip(*columns):
+                    writer.writerow([_csv_cell(v) for v in row])
+
+
+def _attr_value(value):
+    if isinstance(value, (str, bytes, bool, int, float, np.generic)):
+        return value
+    if isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
+        return value
+    return json.dumps(value, default=_json_default)
+
+
+def _csv_cell(value) -> str:
+    # str() of a NumPy scalar is the shortest text that reads back to the same value.
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.bool_):
+        return str(int(value))
+    return str(value)
+
+
+def read_series(path) -> dict:
+    """All series of `path` as {key: array} (as written)."""
+    with _open_tcd(path, FILE_SERIES) as f:
+        return _datasets(f)
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+def save_checkpoint(path, arrays: dict, meta: dict) -> None:
+    """Store `arrays` bit-exact and `meta` as JSON text in one HDF5 file, atomically."""
+    where = "checkpoint"
+    prepared = {}
+    for key, value in arrays.items():
+        _check_dataset_key(key, where, need_group=False)
+        prepared[key] = _as_storable(key, value, where)
+    try:
+        meta_text = json.dumps(meta, default=_json_default)
+    except TypeError as exc:
+        raise ValueError(f"{where}: meta is not JSON serialisable: {exc}") from exc
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["tcd_file"] = FILE_CHECKPOINT
+            f.attrs["tcd_version"] = _default_version("")
+            f.attrs["created"] = _now_iso()
+            f.attrs["meta"] = meta_text
+            group = f.create_group("arrays")
+            for key, arr in prepared.items():
+                group.create_dataset(key, data=arr)
+
+
+def load_checkpoint(path) -> tuple[dict, dict]:
+    """(arrays, meta) as given to :func:`save_checkpoint`."""
+    path = os.fspath(path)
+    with _open_tcd(path, FILE_CHECKPOINT) as f:
+        if "arrays" not in f or "meta" not in f.attrs:
+            raise ValueError(f"{path}: checkpoint without 'arrays' group or 'meta' attribute")
+        arrays = _datasets(f["arrays"])
+        meta = json.loads(f.attrs["meta"])
+    return arrays, meta
+
+
+# --- summary ---------------------------------------------------------------------------------
+def info(path) -> str:
+    """A readable multi-line summary of a tcd states, series or checkpoint file."""
+    path = os.fspath(path)
+    with _open_tcd(path, None) as f:
+        kind = _file_kind(f)
+        head = (f"{path}: tcd {kind} file, schema_version {int(f.attrs['schema_version'])}, "
+                f"tcd_version {_attr_text(f, 'tcd_version') or '?'}, "
+                f"created {_attr_text(f, 'created') or '?'}")
+        if kind == FILE_STATES:
+            body = _info_states(f, path)
+        elif kind == FILE_SERIES:
+            body = _info_series(f)
+        else:
+            body = _info_checkpoint(f)
+    return "\n".join([head] + body)
+
+
+def _attr_text(obj, name: str) -> str:
+    value = obj.attrs.get(name, "")
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _info_states(f: h5py.File, path: str) -> list[str]:
+    names = _frame_names(f, path)
+    scenario = _attr_text(f, "scenario")
+    lines = [f"scenario: {len(scenario.splitlines())} lines of TOML" if scenario
+             else "scenario: (none)"]
+    if not names:
+        return lines + ["frames: 0"]
+    groups = [f["frames"][n] for n in names]
+    times = [float(g.attrs["time"]) for g in groups]
+    steps = [int(g.attrs["step"]) for g in groups]
+    stages = list(dict.fromkeys(str(g.attrs["stage"]) for g in groups))
+    lines.append(f"frames: {len(names)}, time {min(times):.6g} .. {max(times):.6g} s, "
+                 f"step {min(steps)} .. {max(steps)}")
+    lines.append(f"stages: {', '.join(stages)}")
+    last = groups[-1]
+
+    def length(key):
+        return last[key].shape[0] if key in last else 0
+
+    lines.append(f"last frame {names[-1]} (t = {times[-1]:.6g} s, stage {last.attrs['stage']}): "
+                 f"{length('particles/x')} particles, {length('walls/kind')} walls, "
+                 f"{length('contacts/i')} contacts")
+    if "bonds/state" in last:
+        state = last["bonds/state"][()]
+        lines.append(f"bonds: {state.size} (intact {int(np.sum(state == BOND_INTACT))}, "
+                     f"broken in tension {int(np.sum(state == BOND_BROKEN_TENSION))}, "
+                     f"broken in shear {int(np.sum(state == BOND_BROKEN_SHEAR))})")
+    else:
+        lines.append("bonds: none")
+    return lines
+
+
+def _info_series(f: h5py.File) -> list[str]:
+    entries = []
+    f.visititems(lambda name, obj: entries.append((name, obj))
+                 if isinstance(obj, h5py.Dataset) else None)
+    lines = [f"series: {len(entries)} keys"]
+    for name, value in f.attrs.items():
+        if name not in _ROOT_ATTRS:
+            lines.append(f"attr {name} = {value!r}"[:200])
+    for name, ds in entries:
+        data = ds[()]
+        text = f"  {name} [{_units_attr(ds)}]: length {ds.shape[0]}"
+        if data.dtype.kind in "biuf" and data.size:
+            values = data.astype(float)
+            finite = values[np.isfinite(values)]
+            if finite.size:
+                text += f", min {finite.min():.6g}, max {finite.max():.6g}"
+            if data.ndim == 1:
+                text += f", last {values[-1]:.6g}"
+        lines.append(text)
+    return lines
+
+
+def _info_checkpoint(f: h5py.File) -> list[str]:
+    entries = []
+    if "arrays" in f:
+        f["arrays"].visititems(lambda name, obj: entries.append((name, obj))
+                               if isinstance(obj, h5py.Dataset) else None)
+    try:
+        meta = json.loads(f.attrs.get("meta", "{}"))
+    except ValueError:
+        meta = None
+    keys = ", ".join(map(str, meta)) if isinstance(meta, dict) else "(unreadable)"
+    lines = [f"meta keys: {keys}", f"arrays: {len(entries)}"]
+    lines += [f"  {name}: {ds.dtype} {ds.shape}" for name, ds in entries]
+    return lines

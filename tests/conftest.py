@@ -1,0 +1,32 @@
+"""Session-wide Taichi initialisation: `ti.init` may run once per process.
+
+`--precision f32` runs the physics tests in single precision; tests read their tolerances
+from the `tol` fixture, which follows the precision.
+"""
+import pytest
+
+import tcd
+
+
+def pytest_addoption(parser):
+    parser.addoption("--arch", default="cpu", choices=("cpu", "gpu"))
+    parser.addoption("--precision", default="f64", choices=("f64", "f32"))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def backend(request):
+    arch = request.config.getoption("--arch")
+    precision = request.config.getoption("--precision")
+    tcd.init(arch, precision)
+    return arch, precision
+
+
+@pytest.fixture(scope="session")
+def precision(backend):
+    return backend[1]
+
+
+@pytest.fixture(scope="session")
+def tol(precision):
+    """Relative tolerance for quantities that are exact up to rounding."""
+    return 1e-9 if precision == "f64" else 2e-4

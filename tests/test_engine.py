@@ -1,0 +1,267 @@
+"""Engine physics against closed forms and brute-force oracles (PHYSICS.md sections 1-3, 6)."""
+import math
+
+import numpy as np
+import pytest
+
+from tcd import packing, solver as sk, walls
+from tcd.simulation import Simulation, SolverSettings
+
+G = 9.81
+RHO = 2600.0
+H = 2e-4
+
+
+def mass(r):
+    return RHO * 4.0 / 3.0 * math.pi * np.asarray(r) ** 3
+
+
+def tight(**kw):
+    """Solver settings converged far below the physics tolerances of the tests."""
+    base = dict(tolerance=1e-12, max_sweeps=20000)
+    base.update(kw)
+    return SolverSettings(**base)
+
+
+def random_cloud(n, seed, box=0.05):
+    rng = np.random.default_rng(seed)
+    r = packing.course_radii("binder", n, rng) * 0.5
+    x = rng.uniform(0.0, box, size=(n, 3))
+    return r, x
+
+
+def brute_force_pairs(x, r, alert):
+    d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2) - r[:, None] - r[None, :]
+    i, j = np.nonzero(np.triu(d < alert, k=1))
+    return set(zip(i.tolist(), j.tolist()))
+
+
+# --- broad phase and colouring -----------------------------------------------------------------
+@pytest.mark.parametrize("seed", [1, 2])
+def test_grid_broad_phase_equals_brute_force(seed):
+    r, x = random_cloud(500, seed)
+    sim = Simulation(r, x, settings=SolverSettings(alert_ratio=0.5),
+                     domain=((0, 0, 0), (0.05, 0.05, 0.05)))
+    sim._build_contacts()
+    c = sim.contact_arrays()
+    found = list(zip(c["i"].tolist(), c["j"].tolist()))
+    expected = brute_force_pairs(x, r, sim.alert)
+    assert len(expected) > 200          # the cloud is dense enough to test something
+    assert len(found) == len(set(found)), "a pair was found twice"
+    assert set(found) == expected
+    assert found == sorted(found), "contacts are not in canonical (i, j) order"
+
+
+def test_broad_phase_with_particles_outside_grid_and_growing_buffers():
+    r, x = random_cloud(300, 3, box=0.04)
+    # grid covers only part of the cloud and buffers start tiny: results must not change
+    sim = Simulation(r, x, settings=SolverSettings(alert_ratio=0.5),
+                     domain=((0.01, 0.01, 0.01), (0.03, 0.03, 0.03)), contact_capacity=4)
+    sim.grid = sim._make_grid(8)
+    sim._build_contacts()
+    c = sim.contact_arrays()
+    assert set(zip(c["i"].tolist(), c["j"].tolist())) == brute_force_pairs(x, r, sim.alert)
+    assert any("contacts" in e for e in sim.grow_events)
+    assert any("grid" in e for e in sim.grow_events)
+
+
+def test_colouring_never_shares_a_dynamic_body():
+    r, x = random_cloud(600, 4, box=0.04)
+    wl = [walls.plane((0, 0, 0.0), (0, 0, 1)), walls.plane((0, 0, 0.04), (0, 0, -1))]
+    sim = Simulation(r, x, walls=wl, settings=SolverSettings(alert_ratio=0.5, schedule="coloured"),
+                     domain=((0, 0, 0), (0.04, 0.04, 0.04)))
+    sim.create_bonds(gap_tolerance=0.0)             # overlapping pairs become bonds
+    sim.step()                                       # colours bonds and contacts together
+    cs, ct, bd = sim.colours, sim.contacts, sim.bonds
+    nb, nc = int(bd.total[None]), int(ct.total[None])
+    assert nb > 50 and nc > 50
+    col = cs.item_colour.to_numpy()[: nb + nc]
+    bi, bj = bd.i.to_numpy()[:nb], bd.j.to_numpy()[:nb]
+    ci, cj = ct.i.to_numpy()[:nc], ct.j.to_numpy()[:nc]
+    ii, jj = np.concatenate([bi, ci]), np.concatenate([bj, cj])
+    state = np.concatenate([bd.state.to_numpy()[:nb], np.zeros(nc, int)])
+    active = state == 0
+    assert np.all(col[active] >= 0)
+    for c in np.unique(col[active]):
+        sel = active & (col == c)
+        bodies = np.concatenate([ii[sel], jj[sel][jj[sel] < sim.n]])
+        assert len(bodies) == len(np.unique(bodies)), f"colour {c} shares a body"
+    # the colour lists hold every active item exactly once
+    order = cs.order.to_numpy()[: int(cs.start[sim.stats.colours[None]])]
+    assert sorted(order.tolist()) == np.nonzero(active)[0].tolist()
+
+
+# --- contact mechanics ---------------------------------------------------------------------------
+@pytest.mark.parametrize("schedule", ["serial", "coloured"])
+def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol):
+    r = 0.004
+    sim = Simulation([r], [[0, 0, r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     settings=tight(schedule=schedule), domain=((-0.01,) * 3, (0.01,) * 3))
+    for _ in range(20):
+        sim.step()
+    c = sim.contact_arrays()
+    assert len(c["i"]) == 1
+    np.testing.assert_allclose(c["impulse"][0], [0, 0, -mass(r) * G * H], rtol=tol, atol=1e-20)
+    np.testing.assert_allclose(sim.positions()[0], [0, 0, r], atol=r * tol)
+    np.testing.assert_allclose(sim.velocities()[0], 0.0, atol=1e-12 if tol < 1e-6 else 1e-7)
+    np.testing.assert_allclose(sim.wall_force(0), [0, 0, -mass(r) * G], rtol=tol)
+
+
+@pytest.mark.parametrize("theta_deg, mu, rolls", [(20.0, 0.3, True), (30.0, 0.1, False),
+                                                   (40.0, 0.2, False)])
+def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
+    th = math.radians(theta_deg)
+    assert (math.tan(th) < 3.5 * mu) == rolls
+    r = 0.005
+    normal = (-math.sin(th), 0.0, math.cos(th))          # plane through the origin, tilted
+    x0 = np.array(normal) * r
+    wl = [walls.plane((0, 0, 0), normal, friction=mu)]
+    sim = Simulation([r], [x0], walls=wl, settings=tight(alert_ratio=0.2),
+                     domain=((-0.05,) * 3, (0.05,) * 3))
+    steps = 200
+    sim.step(steps)
+    t = steps * H
+    down = np.array([-math.cos(th), 0.0, -math.sin(th)])   # down-slope unit vector
+    a = 5.0 / 7.0 * G * math.sin(th) if rolls else G * (math.sin(th) - mu * math.cos(th))
+    v = sim.velocities()[0]
+    np.testing.assert_allclose(v @ down, a * t, rtol=max(tol, 1e-6))
+    np.testing.assert_allclose(v @ np.array(normal), 0.0, atol=1e-9 if tol < 1e-6 else 1e-5)
+    spin = np.linalg.norm(sim.angular_velocities()[0]) * r
+    if rolls:
+        np.testing.assert_allclose(spin, a * t, rtol=max(tol, 1e-6))   # no slip: w r = v
+    else:
+        # slipping: torque mu m g cos(th) r gives w r = 5/2 mu g cos(th) t < v
+        np.testing.assert_allclose(spin, 2.5 * mu * G * math.cos(th) * t, rtol=max(tol, 1e-6))
+        assert spin < v @ down
+
+
+def test_vertical_column_carries_the_weight_above_each_contact(tol):
+    r = np.array([0.008, 0.004, 0.0056, 0.001, 0.0028, 0.008])
+    z = np.cumsum(2 * r) - r
+    x = np.column_stack([np.zeros(len(r)), np.zeros(len(r)), z])
+    sim = Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))], settings=tight(),
+                     domain=((-0.01, -0.01, -0.01), (0.01, 0.01, 0.1)))
+    sim.step(10)
+    c = sim.contact_arrays()
+    m = mass(r)
+    # contact below particle k carries the weight of particles k..end
+    carried = {}
+    for i, j, R in zip(c["i"], c["j"], c["impulse"]):
+        if j >= len(r):
+            carried[i] = -R[2]          # wall contact: impulse on the wall points down
+        else:
+            carried[j] = R[2]           # impulse on the upper particle j points up
+    for k in range(len(r)):
+        np.testing.assert_allclose(carried[k], m[k:].sum() * G * H, rtol=max(tol, 1e-8))
+
+
+def test_frictionless_head_on_impact_conserves_momentum_and_stops_approach(tol):
+    r = np.array([0.004, 0.002])
+    x = np.array([[0.0, 0, 0], [0.00605, 0, 0]])      # gap 0.05 mm < alert
+    v = np.array([[0.5, 0, 0], [-1.0, 0, 0]])
+    sim = Simulation(r, x, velocity=v, friction=0.0, settings=tight(gravity=(0, 0, 0), alert_ratio=0.1),
+                     domain=((-0.01,) * 3, (0.02, 0.01, 0.01)))
+    m = mass(r)
+    p0 = (m[:, None] * v).sum(axis=0)
+    sim.step(5)
+    vv = sim.velocities()
+    np.testing.assert_allclose((m[:, None] * vv).sum(axis=0), p0, rtol=tol, atol=1e-12 * abs(p0[0]))
+    np.testing.assert_allclose(vv[1, 0] - vv[0, 0], 0.0, atol=1e-9 if tol < 1e-6 else 1e-5)
+    gap = np.linalg.norm(sim.positions()[1] - sim.positions()[0]) - r.sum()
+    assert gap >= -1e-12 if tol < 1e-6 else gap >= -1e-8
+
+
+def test_existing_overlap_injects_no_energy():
+    r = 0.003
+    sim = Simulation([r], [[0, 0, r - 1e-4]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     settings=tight(), domain=((-0.01,) * 3, (0.01,) * 3))
+    sim.step(50)
+    assert np.linalg.norm(sim.velocities()[0]) < 1e-9
+    assert abs(sim.positions()[0, 2] - (r - 1e-4)) < 1e-9      # neither pushed out nor sinking
+
+
+def test_spheres_inside_moving_cylinder_are_carried(tol):
+    R = 0.02
+    speed = 0.05
+    wl = [walls.plane((0, 0, 0), (0, 0, 1), motion="constant", velocity=(speed, 0, 0)),
+          walls.cylinder((0, 0, 0), (0, 0, 1), R, (0.0, 0.03), motion="constant", velocity=(speed, 0, 0))]
+    r = np.array([0.004, 0.004])
+    x = np.array([[-0.01, 0, 0.004], [0.01, 0, 0.004]])
+    sim = Simulation(r, x, walls=wl, friction=0.0, settings=tight(),
+                     domain=((-0.03, -0.03, -0.01), (0.06, 0.03, 0.04)))
+    # the trailing particle has 6 mm of play behind it: the shell catches it after 0.12 s
+    shell_impulse = np.zeros(3)
+    for _ in range(800):    # 0.16 s
+        sim.step()
+        shell_impulse += sim.wall_force(1) * H
+    v = sim.velocities()
+    xc = wl[1].position(sim.time)
+    rho = np.hypot(sim.positions()[:, 0] - xc[0], sim.positions()[:, 1] - xc[1]) + r
+    assert np.all(rho <= R + 1e-9)
+    # the trailing particle is pushed by the shell at the shell's speed
+    np.testing.assert_allclose(v[0, 0], speed, rtol=1e-6)
+    np.testing.assert_allclose(v[1, 0], 0.0, atol=1e-9)           # the leading one is not touched
+    # what the shell gave the particle is what the particle exerted back on the shell
+    np.testing.assert_allclose(-shell_impulse[0], mass(r[0]) * speed, rtol=1e-6)
+
+
+def test_wall_forces_equal_the_impulses_the_particles_received(tol):
+    rng = np.random.default_rng(5)
+    r = packing.course_radii("surface", 40, rng)
+    x = packing.lattice_column(r, 0.05, 0.0, rng)
+    R = 0.025
+    wl = [walls.plane((0, 0, 0), (0, 0, 1)), walls.cylinder((0, 0, 0), (0, 0, 1), R, (0, 1.0))]
+    sim = Simulation(r, x, walls=wl, settings=SolverSettings(tolerance=1e-6, max_sweeps=2000),
+                     domain=((-R, -R, 0), (R, R, x[:, 2].max() + 0.01)))
+    m = mass(r)
+    sim.step(700)                      # the first particles have landed
+    p0 = (m[:, None] * sim.velocities()).sum(axis=0)
+    wall_impulse = np.zeros(3)
+    steps = 300
+    for _ in range(steps):
+        sim.step()
+        c = sim.contact_arrays()
+        for k in range(2):
+            sel = c["j"] == sim.n + k
+            np.testing.assert_allclose(sim.wall_force(k), c["impulse"][sel].sum(axis=0) / H,
+                                       rtol=tol, atol=1e-12)
+            wall_impulse += sim.wall_force(k) * H
+    assert np.abs(wall_impulse).max() > 0.1 * m.sum() * G * steps * H   # the walls did work
+    # momentum balance of the particles: gravity minus what they gave the walls
+    p1 = (m[:, None] * sim.velocities()).sum(axis=0)
+    expected = p0 + np.array([0, 0, -G]) * m.sum() * steps * H - wall_impulse
+    np.testing.assert_allclose(p1, expected, atol=max(tol, 1e-9) * m.sum() * G * steps * H)
+
+
+def test_same_inputs_give_the_same_numbers():
+    def run():
+        rng = np.random.default_rng(7)
+        r = packing.course_radii("binder", 80, rng)
+        x = packing.lattice_column(r, 0.06, 0.0, rng)
+        wl = [walls.plane((0, 0, 0), (0, 0, 1)), walls.cylinder((0, 0, 0), (0, 0, 1), 0.03, (0, 1))]
+        sim = Simulation(r, x, walls=wl, domain=((-0.03, -0.03, 0), (0.03, 0.03, 0.5)))
+        sim.step(600)
+        return sim.positions(), sim.velocities(), sim.last.sweeps
+    a, b = run(), run()
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(radius=[-0.001]), "radius"),
+    (dict(radius=[0.001, 0.001]), "shape"),
+    (dict(density=-1.0), "density"),
+    (dict(friction=-0.1), "friction"),
+])
+def test_bad_input_is_refused_with_a_named_reason(bad, message):
+    args = dict(radius=[0.001], position=[[0, 0, 0]])
+    args.update(bad)
+    with pytest.raises(ValueError, match=message):
+        Simulation(args.pop("radius"), args.pop("position"), **args)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(time_step=0.0), "time_step"), (dict(theta=0.3), "theta"),
+    (dict(tolerance=-1.0), "tolerance"), (dict(schedule="magic"), "schedule")])
+def test_bad_solver_settings_are_refused(bad, message):
+    with pytest.raises(ValueError, match=message):
+        SolverSettings(**bad)

@@ -1,0 +1,418 @@
+"""tcd.io: schema, bit-exact round trips, crash safety (exceptions and SIGKILL), errors, summaries."""
+import csv
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from tcd import io
+
+IO_SOURCE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tcd", "io.py")
+
+
+def nan_with_payload(dtype):
+    """A quiet NaN with a non-default payload: survives only a bit-exact copy."""
+    base = np.array([np.nan], dtype=dtype)
+    bits = base.view(np.uint64 if base.itemsize == 8 else np.uint32)
+    bits |= 0x5
+    return base[0]
+
+
+def make_frame(n=7, n_walls=3, n_contacts=9, n_bonds=5, seed=0):
+    rng = np.random.default_rng(seed)
+    broken_time = np.full(n_bonds, np.nan)
+    broken_time[1] = 0.125
+    broken_time[3] = nan_with_payload(np.float64)
+    broken_position = rng.normal(size=(n_bonds, 3))
+    broken_position[0] = np.nan
+    return {
+        "particles/x": rng.normal(size=(n, 3)),
+        "particles/v": rng.normal(size=(n, 3)),
+        "particles/w": rng.normal(size=(n, 3)).astype(np.float32),
+        "particles/radius": rng.uniform(1e-3, 8e-3, n),
+        "particles/layer": np.arange(n, dtype=np.int32) % 2,
+        "walls/kind": np.array([0, 0, 1][:n_walls], dtype=np.int32),
+        "walls/point": rng.normal(size=(n_walls, 3)),
+        "walls/direction": rng.normal(size=(n_walls, 3)),
+        "walls/radius": rng.uniform(size=n_walls),
+        "walls/extent": rng.uniform(size=(n_walls, 2)),
+        "walls/force": rng.normal(size=(n_walls, 3)),
+        "contacts/i": rng.integers(0, n, n_contacts).astype(np.int32),
+        "contacts/j": rng.integers(0, n + n_walls, n_contacts).astype(np.int32),
+        "contacts/impulse": rng.normal(size=(n_contacts, 3)).astype(np.float32),
+        "contacts/gap": rng.normal(size=n_contacts).astype(np.float32),
+        "bonds/i": rng.integers(0, n, n_bonds).astype(np.int32),
+        "bonds/j": rng.integers(0, n, n_bonds).astype(np.int32),
+        "bonds/state": np.array([0, 1, 0, 2, 0][:n_bonds], dtype=np.int8),
+        "bonds/impulse": rng.normal(size=(n_bonds, 3)),
+        "bonds/broken_time": broken_time,
+        "bonds/broken_position": broken_position,
+        "bonds/history_n": rng.normal(size=n_bonds),
+    }
+
+
+def assert_bit_exact(actual, expected, key=""):
+    actual = np.asarray(actual)
+    assert actual.dtype == expected.dtype, key
+    assert actual.shape == expected.shape, key
+    assert actual.tobytes() == expected.tobytes(), key
+
+
+def temp_files(directory):
+    return sorted(p for p in os.listdir(directory) if p.startswith(".") and p.endswith(".tmp"))
+
+
+# --- round trips ------------------------------------------------------------------------------
+def test_frame_round_trip_is_bit_exact_with_schema_attributes(tmp_path):
+    path = tmp_path / "states.h5"
+    frame = make_frame()
+    index = io.append_frame(path, frame, time=0.25, step=250, stage="shear",
+                            scenario_text="[sample]\nheight = 0.1\n", tcd_version="9.9",
+                            units={"bonds/history_n": "m"})
+    assert index == 0
+    back = io.read_frame(path, 0)
+    assert set(back) == set(frame) | {"time", "step", "stage"}
+    for key, value in frame.items():
+        assert_bit_exact(back[key], value, key)
+    assert (back["time"], back["step"], back["stage"]) == (0.25, 250, "shear")
+    with h5py.File(path, "r") as f:
+        assert f.attrs["schema_version"] == io.SCHEMA_VERSION == 1
+        assert f.attrs["tcd_version"] == "9.9"
+        assert f.attrs["scenario"] == "[sample]\nheight = 0.1\n"
+        assert "T" in f.attrs["created"]
+        group = f["frames/000000"]
+        assert group["particles/v"].attrs["units"] == "m/s"
+        assert group["particles/w"].attrs["units"] == "rad/s"
+        assert group["contacts/impulse"].attrs["units"] == "N s"
+        assert group["walls/force"].attrs["units"] == "N"
+        assert group["bonds/broken_time"].attrs["units"] == "s"
+        assert group["bonds/history_n"].attrs["units"] == "m"
+        assert group["particles/layer"].attrs["units"] == "1"
+
+
+def test_integer_fields_are_stored_with_schema_dtypes(tmp_path):
+    path = tmp_path / "states.h5"
+    frame = make_frame()
+    frame["particles/layer"] = frame["particles/layer"].astype(np.int64)
+    frame["bonds/state"] = frame["bonds/state"].astype(np.uint8)
+    io.append_frame(path, frame, time=0.0, step=0, stage="pour")
+    back = io.read_frame(path)
+    assert back["particles/layer"].dtype == np.int32
+    assert back["bonds/state"].dtype == np.int8
+    np.testing.assert_array_equal(back["particles/layer"], frame["particles/layer"])
+    np.testing.assert_array_equal(back["bonds/state"], frame["bonds/state"])
+
+
+def test_checkpoint_round_trip_is_bit_exact_including_empty_arrays(tmp_path):
+    path = tmp_path / "checkpoint.h5"
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(11, 3))
+    x[2, 1] = nan_with_payload(np.float64)
+    arrays = {
+        "x": x,
+        "w32": rng.normal(size=(11, 3)).astype(np.float32),
+        "state": np.array([0, 1, 2, -1], dtype=np.int8),
+        "ids": np.array([2**63 + 5, 0], dtype=np.uint64),
+        "flags": np.array([True, False, True]),
+        "z": np.array([1 + 2j, np.nan], dtype=np.complex128),
+        "big_endian": np.arange(4, dtype=">f8"),
+        "empty": np.zeros(0),
+        "empty_pairs": np.zeros((0, 3), dtype=np.int32),
+        "scalar": np.array(0.1),
+        "contacts/prev_impulse": rng.normal(size=(5, 3)),
+    }
+    meta = {"time": 1.5, "step": np.int64(1500), "stage": "shear", "rng": [1, 2, 3],
+            "nested": {"nan": float("nan"), "mu": np.float32(0.5)}}
+    io.save_checkpoint(path, arrays, meta)
+    back, back_meta = io.load_checkpoint(path)
+    assert set(back) == set(arrays)
+    for key, value in arrays.items():
+        assert_bit_exact(back[key], value, key)
+    assert back_meta["step"] == 1500 and back_meta["rng"] == [1, 2, 3]
+    assert back_meta["stage"] == "shear" and back_meta["nested"]["mu"] == 0.5
+    assert np.isnan(back_meta["nested"]["nan"])
+
+
+def test_appending_keeps_earlier_frames_in_order(tmp_path):
+    path = tmp_path / "states.h5"
+    frames = [make_frame(n=4 + k, seed=k) for k in range(4)]
+    stages = ["pour", "pour", "vibrate", "shear"]
+    for k, frame in enumerate(frames):
+        assert io.append_frame(path, frame, time=0.1 * k, step=10 * k, stage=stages[k]) == k
+        assert io.frame_count(path) == k + 1
+    for k, frame in enumerate(frames):
+        back = io.read_frame(path, k)
+        assert (back["step"], back["stage"]) == (10 * k, stages[k])
+        assert_bit_exact(back["particles/x"], frame["particles/x"])
+    last = io.read_frame(path, -1)
+    assert last["step"] == 30
+    assert_bit_exact(last["particles/x"], frames[-1]["particles/x"])
+    assert io.read_frame(path, -4)["step"] == 0
+
+
+def test_series_round_trip_and_csv_twin(tmp_path):
+    h5_path, csv_path = tmp_path / "series.h5", tmp_path / "series.csv"
+    t = np.linspace(0.0, 1.0, 17)
+    series = {"time": t, "force_top": -3.0 * t, "stress": np.stack([t, 2 * t], axis=1),
+              "contacts": np.arange(17, dtype=np.int32)}
+    io.write_series(h5_path, series, units={"time": "s", "force_top": "N", "stress": "Pa"},
+                    attrs={"note": "test", "params": {"a": 1}},
+                    csv_path=csv_path, csv_keys=["time", "force_top", "contacts"])
+    back = io.read_series(h5_path)
+    assert set(back) == set(series)
+    for key, value in series.items():
+        assert_bit_exact(back[key], value, key)
+    with h5py.File(h5_path, "r") as f:
+        assert f["force_top"].attrs["units"] == "N" and f["contacts"].attrs["units"] == "1"
+        assert json.loads(f.attrs["params"]) == {"a": 1}
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["time [s]", "force_top [N]", "contacts [1]"]
+    assert len(rows) == 1 + 17
+    np.testing.assert_array_equal([float(r[1]) for r in rows[1:]], -3.0 * t)
+    assert [int(r[2]) for r in rows[1:]] == list(range(17))
+
+
+def test_write_json_is_atomic_and_maps_nan_to_null(tmp_path):
+    path = tmp_path / "summary.json"
+    io.write_json(path, {"a": float("nan"), "b": np.float64(2.5), "c": np.array([1.0, np.inf])})
+    assert json.loads(path.read_text()) == {"a": None, "b": 2.5, "c": [1.0, None]}
+    assert '\n  "a": null' in path.read_text()
+    assert temp_files(tmp_path) == []
+
+
+# --- crash safety -----------------------------------------------------------------------------
+def _write_states(path):
+    io.append_frame(path, make_frame(), time=0.0, step=0, stage="pour")
+
+
+def _write_checkpoint(path):
+    io.save_checkpoint(path, {"a": np.arange(3.0), "b": np.ones(4)}, {"step": 1})
+
+
+def _write_series(path):
+    io.write_series(path, {"time": np.arange(5.0), "force": np.ones(5)})
+
+
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+@pytest.mark.parametrize("write", [_write_states, _write_checkpoint, _write_series],
+                         ids=["append_frame", "save_checkpoint", "write_series"])
+def test_write_failing_midway_leaves_previous_file_identical(tmp_path, monkeypatch, write, error):
+    path = tmp_path / "out.h5"
+    write(path)
+    before = path.read_bytes()
+    original = h5py.Group.create_dataset
+    calls = []
+
+    def create_then_fail(self, *args, **kwargs):
+        calls.append(args[0] if args else kwargs.get("name"))
+        if len(calls) > 1:
+            raise error("disk exploded")
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", create_then_fail)
+    with pytest.raises(error, match="disk exploded"):
+        write(path)
+    monkeypatch.undo()
+    assert len(calls) == 2
+    assert path.read_bytes() == before
+    assert temp_files(tmp_path) == []
+    assert sorted(os.listdir(tmp_path)) == ["out.h5"]
+
+
+KILL_CHILD = """
+import importlib.util, sys
+import numpy as np
+spec = importlib.util.spec_from_file_location("tcd_io_child", sys.argv[1])
+io = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(io)
+path, n = sys.argv[2], int(sys.argv[3])
+k = io.frame_count(path)
+print("ready", flush=True)
+while True:
+    frame = {"particles/x": np.full((n, 3), float(k)), "particles/v": np.full((n, 3), -1.0),
+             "particles/w": np.zeros((n, 3)), "particles/radius": np.full(n, 1e-3),
+             "particles/layer": np.zeros(n, dtype=np.int32)}
+    io.append_frame(path, frame, time=0.1 * k, step=k, stage="kill")
+    k += 1
+"""
+
+
+def test_sigkill_while_appending_never_corrupts_the_target(tmp_path):
+    path = tmp_path / "states.h5"
+    n = 40_000  # about 3.4 MB per frame, so most of the child's time is spent mid-write
+    io.append_frame(path, {"particles/x": np.zeros((n, 3))}, time=0.0, step=0, stage="kill")
+    rng = random.Random(7)
+    count, leftovers = 1, set()
+    for delay in [rng.uniform(0.05, 0.6) for _ in range(5)]:
+        child = subprocess.Popen([sys.executable, "-c", KILL_CHILD, IO_SOURCE, str(path), str(n)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert child.stdout.readline().strip() == "ready", child.stderr.read()
+            time.sleep(delay)
+            assert child.poll() is None, child.stderr.read()  # still appending when killed
+            os.kill(child.pid, signal.SIGKILL)
+        finally:
+            child.kill()
+            child.wait()
+            child.stdout.close()
+            child.stderr.close()
+        new_count = io.frame_count(path)
+        assert new_count >= count
+        count = new_count
+        last = io.read_frame(path, -1)
+        assert last["step"] == count - 1
+        assert last["particles/x"].shape == (n, 3)
+        assert np.all(last["particles/x"] == count - 1)
+        for k in range(count):
+            assert io.read_frame(path, k)["step"] == k
+        leftovers.update(temp_files(tmp_path))
+    assert count > 1, "the child never completed an append"
+    assert leftovers, "no kill landed mid-write, so nothing was tested"
+    assert all(name.startswith(".states.h5.") for name in leftovers)
+
+
+def test_atomic_path_removes_temp_on_error_and_replaces_on_success(tmp_path):
+    path = tmp_path / "data.txt"
+    path.write_text("old")
+    with pytest.raises(ZeroDivisionError):
+        with io.atomic_path(path) as tmp:
+            assert os.path.dirname(tmp) == str(tmp_path)
+            with open(tmp, "w") as fh:
+                fh.write("half")
+            1 / 0
+    assert path.read_text() == "old" and temp_files(tmp_path) == []
+    with io.atomic_path(path) as tmp:
+        with open(tmp, "w") as fh:
+            fh.write("new")
+    assert path.read_text() == "new" and temp_files(tmp_path) == []
+
+
+# --- errors -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("read", [io.read_frame, io.frame_count, io.read_series,
+                                  io.load_checkpoint, io.info])
+def test_missing_file_is_reported_with_its_path(tmp_path, read):
+    path = tmp_path / "nope.h5"
+    with pytest.raises(FileNotFoundError, match="nope.h5"):
+        read(path)
+
+
+def test_not_hdf5_file_is_a_value_error_naming_the_path(tmp_path):
+    path = tmp_path / "notes.h5"
+    path.write_text("this is not HDF5")
+    with pytest.raises(ValueError, match=r"notes\.h5.*not an HDF5 file"):
+        io.read_frame(path)
+    with pytest.raises(ValueError, match=r"notes\.h5"):
+        io.append_frame(path, make_frame(), time=0.0, step=0, stage="pour")
+    assert path.read_text() == "this is not HDF5"
+
+
+@pytest.mark.parametrize("version", [2, None])
+def test_unknown_or_missing_schema_version_is_a_value_error(tmp_path, version):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f.create_group("frames")
+        if version is not None:
+            f.attrs["schema_version"] = version
+    with pytest.raises(ValueError, match=r"other\.h5.*schema_version"):
+        io.frame_count(path)
+    with pytest.raises(ValueError, match=r"other\.h5.*schema_version"):
+        io.info(path)
+
+
+def test_wrong_kind_of_tcd_file_is_a_value_error(tmp_path):
+    path = tmp_path / "series.h5"
+    io.write_series(path, {"time": np.arange(3.0)})
+    with pytest.raises(ValueError, match=r"series\.h5.*series file, expected a states file"):
+        io.read_frame(path)
+
+
+def test_frame_index_out_of_range_names_path_index_and_count(tmp_path):
+    path = tmp_path / "states.h5"
+    _write_states(path)
+    _write_states(path)
+    with pytest.raises(IndexError, match=r"states\.h5.*index 2 .*2 frames"):
+        io.read_frame(path, 2)
+    with pytest.raises(IndexError, match=r"index -3 .*2 frames"):
+        io.read_frame(path, -3)
+
+
+def _replace(key, value):
+    def edit(frame):
+        frame[key] = value
+    return edit
+
+
+def _drop(key):
+    def edit(frame):
+        del frame[key]
+    return edit
+
+
+@pytest.mark.parametrize("edit, key", [
+    (_replace("particles/x", np.zeros((7, 2))), "particles/x"),
+    (_replace("particles/radius", np.ones(6)), "particles/radius"),
+    (_replace("particles/v", np.zeros((8, 3))), "particles/v"),
+    (_replace("particles/layer", np.zeros(7)), "particles/layer"),
+    (_replace("particles/x", np.zeros((7, 3), dtype=np.int64)), "particles/x"),
+    (_replace("walls/extent", np.zeros((3, 3))), "walls/extent"),
+    (_replace("walls/force", np.zeros((2, 3))), "walls/force"),
+    (_replace("contacts/gap", np.zeros(8)), "contacts/gap"),
+    (_replace("contacts/j", np.full(9, 10, dtype=np.int32)), "contacts/j"),
+    (_replace("bonds/state", np.full(5, 3, dtype=np.int8)), "bonds/state"),
+    (_replace("bonds/history_n", np.zeros(4)), "bonds/history_n"),
+    (_replace("notagroup", np.zeros(3)), "notagroup"),
+    (_replace("particles/name", np.array(["a"] * 7)), "particles/name"),
+    (_drop("particles/x"), "particles/x"),
+])
+def test_inconsistent_frame_is_rejected_before_touching_disk(tmp_path, edit, key):
+    path = tmp_path / "states.h5"
+    frame = make_frame()
+    edit(frame)
+    with pytest.raises(ValueError, match=re.escape(repr(key))):
+        io.append_frame(path, frame, time=0.0, step=0, stage="pour")
+    assert os.listdir(tmp_path) == []
+
+
+def test_inconsistent_series_is_rejected_naming_the_key(tmp_path):
+    with pytest.raises(ValueError, match="'force'"):
+        io.write_series(tmp_path / "s.h5", {"time": np.arange(4.0), "force": np.arange(3.0)})
+    with pytest.raises(ValueError, match="'stress'"):
+        io.write_series(tmp_path / "s.h5", {"stress": np.zeros((4, 2))},
+                        csv_path=tmp_path / "s.csv", csv_keys=["stress"])
+    assert os.listdir(tmp_path) == []
+
+
+# --- summaries --------------------------------------------------------------------------------
+def test_info_summarises_states_series_and_checkpoints(tmp_path):
+    states = tmp_path / "states.h5"
+    for k, stage in enumerate(["pour", "shear", "shear"]):
+        io.append_frame(states, make_frame(), time=0.5 * k, step=k, stage=stage,
+                        scenario_text="a = 1\nb = 2\n", tcd_version="0.1.0")
+    text = io.info(states)
+    assert "states" in text and "schema_version 1" in text and "tcd_version 0.1.0" in text
+    assert "frames: 3" in text and "time 0 .. 1 s" in text
+    assert "stages: pour, shear" in text
+    assert "7 particles" in text and "9 contacts" in text
+    assert "intact 3" in text and "broken in tension 1" in text and "broken in shear 1" in text
+
+    series = tmp_path / "series.h5"
+    io.write_series(series, {"time": np.array([0.0, 0.5, 1.0]), "force": np.array([3.0, -1.0, 2.0])},
+                    units={"time": "s", "force": "N"})
+    text = io.info(series)
+    assert "series: 2 keys" in text
+    assert "force [N]: length 3, min -1, max 3, last 2" in text
+    assert "time [s]: length 3" in text
+
+    checkpoint = tmp_path / "checkpoint.h5"
+    io.save_checkpoint(checkpoint, {"x": np.zeros((4, 3))}, {"step": 4})
+    text = io.info(checkpoint)
+    assert "checkpoint" in text and "x: float64 (4, 3)" in text and "step" in text
