@@ -249,7 +249,8 @@ def _open_tcd(path, kind: str) -> h5py.File:
     """Open `path` read-only after checking it is a tcd file of `kind` and schema version 1."""
     path = os.fspath(path)
     if not os.path.exists(path):
-        raise FileNotFoundError(errno.ENOENT, f"no such tcd {kind} file", path)
+        what = f"tcd {kind} file" if kind else "tcd file"
+        raise FileNotFoundError(errno.ENOENT, f"no such {what}", path)
     if os.path.isdir(path) or not h5py.is_hdf5(path):
         raise ValueError(f"{path}: not an HDF5 file")
     try:
@@ -307,9 +308,8 @@ def _units_attr(obj) -> str:
 
 
 # --- states ----------------------------------------------------------------------------------
-def _check_frame(frame: dict, units: dict | None, *, time, step, stage) -> list:
+def _check_frame(frame: dict, units: dict | None, *, time, step, stage, where: str) -> list:
     """Validate a frame; return [(key, array, units)] ready to store. Raises ValueError."""
-    where = "frame"
     if not isinstance(frame, dict):
         raise ValueError(f"{where}: expected a dict of arrays, got {type(frame).__name__}")
     units = dict(units or {})
@@ -401,7 +401,8 @@ def append_frame(path, frame: dict, *, time, step, stage, scenario_text: str = "
     `units` gives units of extra keys; entries for keys not in `frame` are ignored.
     """
     path = os.fspath(path)
-    prepared = _check_frame(frame, units, time=time, step=step, stage=stage)
+    prepared = _check_frame(frame, units, time=time, step=step, stage=stage,
+                            where=f"{path}: frame")
     if os.path.exists(path):
         with _open_tcd(path, FILE_STATES) as f:
             index = len(_frame_names(f, path))
@@ -471,7 +472,7 @@ def write_series(path_h5, series: dict, *, units: dict | None = None, attrs: dic
     (all 1-D keys by default) under a header "key [units]".
     """
     path_h5 = os.fspath(path_h5)
-    where = "series"
+    where = f"{path_h5}: series"
     units = dict(units or {})
     arrays = {}
     length, first = None, None
@@ -550,7 +551,7 @@ def read_series(path) -> dict:
 # --- checkpoints -----------------------------------------------------------------------------
 def save_checkpoint(path, arrays: dict, meta: dict) -> None:
     """Store `arrays` bit-exact and `meta` as JSON text in one HDF5 file, atomically."""
-    where = "checkpoint"
+    where = f"{os.fspath(path)}: checkpoint"
     prepared = {}
     for key, value in arrays.items():
         _check_dataset_key(key, where, need_group=False)

@@ -1,4 +1,4 @@
-"""tcd.io: schema, bit-exact round trips, crash safety (exceptions and SIGKILL), errors, summaries."""
+"""tcd.io: schema, bit-exact round trips, crash safety (exceptions, SIGKILL), errors, summaries."""
 import csv
 import json
 import os
@@ -15,7 +15,9 @@ import pytest
 
 from tcd import io
 
-IO_SOURCE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tcd", "io.py")
+# The SIGKILL child loads io.py by path: it needs neither Taichi nor an installed tcd.
+IO_SOURCE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tcd",
+                         "io.py")
 
 
 def nan_with_payload(dtype):
@@ -405,8 +407,8 @@ def test_info_summarises_states_series_and_checkpoints(tmp_path):
     assert "intact 3" in text and "broken in tension 1" in text and "broken in shear 1" in text
 
     series = tmp_path / "series.h5"
-    io.write_series(series, {"time": np.array([0.0, 0.5, 1.0]), "force": np.array([3.0, -1.0, 2.0])},
-                    units={"time": "s", "force": "N"})
+    samples = {"time": np.array([0.0, 0.5, 1.0]), "force": np.array([3.0, -1.0, 2.0])}
+    io.write_series(series, samples, units={"time": "s", "force": "N"})
     text = io.info(series)
     assert "series: 2 keys" in text
     assert "force [N]: length 3, min -1, max 3, last 2" in text
