@@ -222,17 +222,25 @@ class Simulation:
             self._drop_wall_history()
 
     def _upload_walls(self, t: float) -> None:
-        wf = self.wall_fields
+        """All wall data (on set_walls); per step only `_move_walls` runs."""
+        wf, walls = self.wall_fields, self.walls
+        put(wf.kind, np.array([KINDS[w.kind] for w in walls], np.int32))
+        put(wf.direction, np.array([w.direction for w in walls], float).reshape(-1, 3))
+        put(wf.radius, np.array([w.radius for w in walls], float))
+        put(wf.lo, np.array([w.extent[0] for w in walls], float))
+        put(wf.hi, np.array([w.extent[1] for w in walls], float))
+        put(wf.friction, np.array([w.friction for w in walls], float))
+        wf.count[None] = len(walls)
+        self._moving = any(w.motion != "fixed" for w in walls)
+        self._move_walls(t, force=True)
+
+    def _move_walls(self, t: float, force: bool = False) -> None:
+        if not (force or self._moving):
+            return
         h = self.settings.time_step
-        for k, w in enumerate(self.walls):
-            wf.kind[k] = KINDS[w.kind]
-            wf.point[k] = w.position(t).tolist()
-            wf.direction[k] = list(w.direction)
-            wf.radius[k] = w.radius
-            wf.lo[k], wf.hi[k] = w.extent
-            wf.friction[k] = w.friction
-            wf.velocity[k] = w.step_velocity(t, h).tolist()
-        wf.count[None] = len(self.walls)
+        put(self.wall_fields.point, np.array([w.position(t) for w in self.walls], float).reshape(-1, 3))
+        put(self.wall_fields.velocity,
+            np.array([w.step_velocity(t, h) for w in self.walls], float).reshape(-1, 3))
 
     def _drop_wall_history(self):
         ct = self.contacts
@@ -253,7 +261,7 @@ class Simulation:
         h, theta = s.time_step, s.theta
         t_end = self.time + h
         p, wl, bd = self.particles, self.wall_fields, self.bonds
-        self._upload_walls(self.time)
+        self._move_walls(self.time)
         self._build_contacts()
         ct = self.contacts
         sk.predict(p, h, *s.gravity)
@@ -402,13 +410,11 @@ class Simulation:
         np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
         put(bd.start, np.cumsum(start))
         bd.total[None] = b
+        bd.broken[None] = int(np.count_nonzero(np.asarray(a.get("state", np.zeros(b))) != sk.INTACT))
         self.bonds = bd
 
     def bonds_intact_count(self) -> int:
-        b = int(self.bonds.total[None])
-        if b == 0:
-            return 0
-        return int(np.count_nonzero(get(self.bonds.state, b) == sk.INTACT))
+        return int(self.bonds.total[None]) - int(self.bonds.broken[None])
 
     # ---------------------------------------------------------------- state in / out
     def state_dict(self) -> dict:
@@ -478,6 +484,9 @@ class Simulation:
 
     def set_external_force(self, force) -> None:
         put(self.particles.f_ext, np.zeros((self.n, 3)) + np.asarray(force, dtype=float))
+
+    def set_positions(self, x) -> None:
+        put(self.particles.x, np.asarray(x, dtype=float).reshape(self.n, 3))
 
     def set_velocities(self, v) -> None:
         put(self.particles.v, np.zeros((self.n, 3)) + np.asarray(v, dtype=float))

@@ -55,6 +55,15 @@ def relative_velocity(p: ti.template(), wl: ti.template(), i, j, n):
 
 @ti.func
 def solve_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k):
+    da = 0.0
+    ra = 0.0
+    if ct.wnn[k] > 0.0:       # two kinematic bodies: nothing to solve
+        da, ra = solve_frictional(p, wl, ct, k)
+    return da, ra
+
+
+@ti.func
+def solve_frictional(p: ti.template(), wl: ti.template(), ct: ti.template(), k):
     i, j, n = ct.i[k], ct.j[k], ct.normal[k]
     r_old = ct.impulse[k]
     u = relative_velocity(p, wl, i, j, n)
@@ -333,6 +342,7 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
             tau = ft.norm() / bd.area[b]
             if sigma >= yield_stress or tau >= yield_stress:
                 bd.state[b] = BROKEN_TENSION if sigma >= yield_stress else BROKEN_SHEAR
+                ti.atomic_add(bd.broken[None], 1)
                 bd.broken_time[b] = t_end
                 ri = p.radius[i]
                 gap = (p.x[j] - p.x[i]).norm() - ri - p.radius[j]

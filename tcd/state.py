@@ -206,9 +206,11 @@ class Bonds:
         self.rhs_n, self.cn, self.ct, self.wnn, self.wtt = _real(c), _real(c), _real(c), _real(c), _real(c)
         self.start = _int(particle_capacity + 1)
         self.total = _scalar()
+        self.broken = _scalar()
 
     def reset(self):
         self.total[None] = 0
+        self.broken[None] = 0
         self.start.fill(0)
 
 
