@@ -498,3 +498,19 @@ class Simulation:
                 "impulse": get(ct.impulse, m).astype(float),
                 "normal": get(ct.normal, m).astype(float),
                 "gap": get(ct.gap, m).astype(float)}
+
+    def set_angular_velocities(self, w) -> None:
+        put(self.particles.w, np.zeros((self.n, 3)) + np.asarray(w, dtype=float))
+
+    def bonds_state_counts(self) -> tuple:
+        """(intact, broken in tension, broken in shear)."""
+        b = int(self.bonds.total[None])
+        if b == 0:
+            return 0, 0, 0
+        s = get(self.bonds.state, b)
+        return (int(np.count_nonzero(s == sk.INTACT)), int(np.count_nonzero(s == sk.BROKEN_TENSION)),
+                int(np.count_nonzero(s == sk.BROKEN_SHEAR)))
+
+    def kinetic_energy(self) -> float:
+        from .observables import kinetic_energy
+        return kinetic_energy(self.velocities(), self.angular_velocities(), self.radii(), self.density)

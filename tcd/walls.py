@@ -1,7 +1,7 @@
 """Kinematic walls: planes and inner surfaces of finite cylinders with imposed motion.
 
 A wall never feels the particles: its position is a function of time (fixed, constant velocity
-or sinusoidal displacement about its initial position). The solver uses, over a step [t, t+H],
+or sinusoidal displacement about a point moving at constant velocity). The solver uses, over a step [t, t+H],
 the wall velocity (p(t+H) - p(t)) / H, so that integrating it reproduces the prescribed
 position exactly. The impulse particles exert on each wall is accumulated per step: that is the
 wall force (impulse / H).
@@ -34,7 +34,8 @@ class Wall:
 
     kind: "plane" or "cylinder". point (m), direction (unit), radius (m), extent (m, cylinder
     axial range). motion: "fixed", "constant" (velocity, m/s) or "sine" (displacement
-    amplitude * sin(2 pi frequency (t - start))), amplitude in m, frequency in Hz. start (s) is
+    velocity * s + amplitude * sin(2 pi frequency s), s = t - start), amplitude in m,
+    frequency in Hz. start (s) is
     when the motion begins (the wall rests at `point` before). friction: Coulomb coefficient
     against particles.
     """
@@ -77,15 +78,27 @@ class Wall:
         s = t - self.start
         if self.motion == "fixed" or s <= 0:
             return p0
+        drift = p0 + np.asarray(self.velocity, dtype=float) * s
         if self.motion == "constant":
-            return p0 + np.asarray(self.velocity, dtype=float) * s
-        return p0 + np.asarray(self.amplitude, dtype=float) * math.sin(2 * math.pi * self.frequency * s)
+            return drift
+        return drift + np.asarray(self.amplitude, dtype=float) * math.sin(2 * math.pi * self.frequency * s)
 
     def step_velocity(self, t: float, h: float) -> np.ndarray:
         return (self.position(t + h) - self.position(t)) / h
 
     def moved(self, **changes) -> "Wall":
         return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Wall":
+        d = dict(d)
+        for key in ("point", "direction", "velocity", "amplitude", "extent"):
+            if key in d:
+                d[key] = tuple(d[key])
+        return cls(**d)
 
 
 def plane(point, normal, **kw) -> Wall:

@@ -1,0 +1,582 @@
+"""The paper's outputs (Fig. 2, 3, 4 and Table 2) from a run directory, headless.
+
+Reads files only (summary.json, ``sample_<seed>/shear_series.h5``, ``sample_<seed>/states.h5``)
+and never imports the solver. Plots use Matplotlib's object API on the Agg canvas (no pyplot,
+no display). The 3-D renders of Fig. 2 and Fig. 3 come from :mod:`tcd.render`, imported only
+when a states file is there, because it needs Taichi.
+
+Peak detection: the shear stress of Contact Dynamics fluctuates from step to step, so the peak is
+taken on a centred moving average over a window in displacement units (:func:`smooth`); the
+displacement at the peak is the imposed displacement at that index (:func:`peak_of`). The
+window is the series' ``smoothing_window`` attribute, else :data:`DEFAULT_SMOOTHING_WINDOW`.
+The runner's ``tau_peak``/``d_peak`` attributes, when present, are the values shown.
+
+Invariants: every output file is replaced atomically (:func:`tcd.io.atomic_path`); a sample
+without a readable series is skipped with a :class:`FigureWarning`; a run directory with no
+usable sample raises ValueError naming the directory; a failing render is skipped with a
+warning and the other outputs are still written.
+
+Usage: ``python -m tcd.figures RUN_DIR [--out OUT_DIR]``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import os
+import re
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from . import io
+
+#: paper Table 2, mean of 5 cores (MPa, mm)
+EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
+#: paper Table 2, mean of the paper's 5 LMGC90 samples (MPa, mm)
+PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+#: moving-average window (m of imposed displacement) when the series does not give one
+DEFAULT_SMOOTHING_WINDOW = 5e-5
+#: end of the imposed displacement in the paper (m); Fig. 4's x range
+DISPLACEMENT_END = 2.5e-3
+
+SERIES_NAME = "shear_series.h5"
+STATES_NAME = "states.h5"
+SUMMARY_NAME = "summary.json"
+
+_RC = {"font.size": 10, "axes.labelsize": 11, "axes.titlesize": 11, "legend.fontsize": 9,
+       "xtick.labelsize": 9.5, "ytick.labelsize": 9.5, "axes.linewidth": 0.8,
+       "font.family": "DejaVu Sans", "pdf.fonttype": 42}
+
+
+class FigureWarning(UserWarning):
+    """A sample or a figure was skipped; the other outputs are still written."""
+
+
+# --- pure helpers ----------------------------------------------------------------------------
+def smooth(y, x, window) -> np.ndarray:
+    """Centred moving average of `y` over ``|x_j - x_i| <= window / 2`` (window in x units).
+
+    x may be non-uniform (sorted internally when it is not ascending); near the ends the
+    average uses the points available. NaN values of y are left out of the averages. A window
+    <= 0 returns a copy of y.
+    """
+    y = np.asarray(y, dtype=float)
+    x = np.asarray(x, dtype=float)
+    if y.shape != x.shape or y.ndim != 1:
+        raise ValueError(f"smooth: x and y must be 1-D of the same length, got {x.shape} "
+                         f"and {y.shape}")
+    if not window > 0 or y.size == 0:
+        return y.copy()
+    order = np.argsort(x, kind="stable")
+    xs, ys = x[order], y[order]
+    finite = np.isfinite(ys)
+    csum = np.concatenate([[0.0], np.cumsum(np.where(finite, ys, 0.0))])
+    ccount = np.concatenate([[0], np.cumsum(finite)])
+    lo = np.searchsorted(xs, xs - 0.5 * window, side="left")
+    hi = np.searchsorted(xs, xs + 0.5 * window, side="right")
+    count = ccount[hi] - ccount[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = (csum[hi] - csum[lo]) / count
+    out = np.empty_like(mean)
+    out[order] = np.where(count > 0, mean, np.nan)
+    return out
+
+
+def peak_of(displacement, stress, window) -> tuple[float, float, int]:
+    """(peak of the smoothed stress, displacement there, its index).
+
+    Among equal maxima the last index wins, so a monotonic curve peaks at its last point.
+    """
+    displacement = np.asarray(displacement, dtype=float)
+    smoothed = smooth(stress, displacement, window)
+    if smoothed.size == 0 or not np.any(np.isfinite(smoothed)):
+        raise ValueError("peak_of: no finite stress values")
+    top = np.nanmax(smoothed)
+    index = int(np.flatnonzero(smoothed == top)[-1])
+    return float(top), float(displacement[index]), index
+
+
+def _number(value) -> float:
+    """A summary entry as a float; None (JSON null) and junk become NaN."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _relative_error(value: float, reference: float) -> float:
+    return (value - reference) / reference if reference else math.nan
+
+
+def table2_rows(summary: dict) -> list[dict]:
+    """Rows of the paper's Table 2 with this run added.
+
+    Each row: ``label``, ``tau_MPa``, ``d_mm``, ``tau_std_MPa``, ``d_std_mm`` (NaN where not
+    applicable), ``n_samples`` (None for the experiments), ``tau_rel_error``, ``d_rel_error``
+    (signed, ``(value - experiment) / experiment``; NaN for the experiments row).
+    The run's mean and std come from ``summary["mean"]``/``["std"]``, else from its samples.
+    """
+    experiment = {**EXPERIMENT, **(summary.get("experiment") or {})}
+    paper = {**PAPER_SIMULATION, **(summary.get("paper_simulation") or {})}
+    tau_exp, d_exp = _number(experiment["tau_peak_MPa"]), _number(experiment["d_peak_mm"])
+    samples = summary.get("samples") or []
+    mean, std = summary.get("mean") or {}, summary.get("std") or {}
+
+    def run_stat(key):
+        m, s = _number(mean.get(key)), _number(std.get(key))
+        values = np.array([_number(smp.get(key)) for smp in samples], dtype=float)
+        values = values[np.isfinite(values)]
+        if not math.isfinite(m) and values.size:
+            m = float(values.mean())
+        if not math.isfinite(s) and values.size > 1:
+            s = float(values.std(ddof=1))
+        return m, s
+
+    tau_run, tau_std = run_stat("tau_peak_MPa")
+    d_run, d_std = run_stat("d_peak_mm")
+    n = len(samples)
+
+    def row(label, tau, d, tau_s=math.nan, d_s=math.nan, n_samples=None, reference=True):
+        return {"label": label, "tau_MPa": tau, "d_mm": d, "tau_std_MPa": tau_s,
+                "d_std_mm": d_s, "n_samples": n_samples,
+                "tau_rel_error": _relative_error(tau, tau_exp) if reference else math.nan,
+                "d_rel_error": _relative_error(d, d_exp) if reference else math.nan}
+
+    return [
+        row("experiments", tau_exp, d_exp, reference=False),
+        row("paper simulations (LMGC90)", _number(paper["tau_peak_MPa"]),
+            _number(paper["d_peak_mm"]), n_samples=5),
+        row(f"tcd (this run, mean ± std of {n} samples)", tau_run, d_run, tau_std, d_std, n),
+    ]
+
+
+# --- reading a run directory -----------------------------------------------------------------
+@dataclasses.dataclass
+class SampleCurves:
+    """The shear series of one sample, in SI units, with its peak."""
+    seed: str
+    directory: Path
+    time: np.ndarray            # (T,) s
+    displacement: np.ndarray    # (T,) m, imposed on the upper ring
+    stress: np.ndarray          # (T,) Pa
+    smoothed: np.ndarray        # (T,) Pa, :func:`smooth` over `window`
+    window: float               # m
+    tau_peak: float             # Pa
+    d_peak: float               # m
+    peak_index: int
+    series: dict                # every dataset of the series file
+
+    @property
+    def peak_time(self) -> float:
+        return float(self.time[self.peak_index]) if self.time.size else math.nan
+
+
+def _sample_dirs(run_dir: Path, summary: dict | None) -> list[tuple[str, Path]]:
+    """(seed, directory) for the summary's samples first, then any other sample_* folder."""
+    found, seen = [], set()
+    for smp in (summary or {}).get("samples") or []:
+        seed = str(smp.get("seed"))
+        if seed not in seen:
+            seen.add(seed)
+            found.append((seed, run_dir / f"sample_{seed}"))
+    others = [p for p in run_dir.glob("sample_*") if p.is_dir()]
+    for path in sorted(others, key=lambda p: _seed_key(p.name[len("sample_"):])):
+        seed = path.name[len("sample_"):]
+        if seed not in seen:
+            seen.add(seed)
+            found.append((seed, path))
+    return found
+
+
+def _seed_key(seed: str):
+    return (0, int(seed), "") if re.fullmatch(r"-?\d+", seed) else (1, 0, seed)
+
+
+def _series_attrs(path: Path) -> dict:
+    with h5py.File(path, "r") as f:
+        return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+
+
+def load_sample(seed: str, directory: Path) -> SampleCurves:
+    """Read ``directory/shear_series.h5``; raise FileNotFoundError/ValueError if unusable."""
+    path = directory / SERIES_NAME
+    series = io.read_series(path)
+    attrs = _series_attrs(path)
+    for key in ("displacement", "shear_stress"):
+        if key not in series:
+            raise ValueError(f"{path}: series without {key!r}")
+    displacement = np.asarray(series["displacement"], dtype=float)
+    stress = np.asarray(series["shear_stress"], dtype=float)
+    if displacement.size == 0:
+        raise ValueError(f"{path}: empty series")
+    time = np.asarray(series.get("time", np.arange(displacement.size)), dtype=float)
+    window = _number(attrs.get("smoothing_window"))
+    if not window > 0:
+        window = DEFAULT_SMOOTHING_WINDOW
+    smoothed = smooth(stress, displacement, window)
+    tau_peak, d_peak, index = peak_of(displacement, stress, window)
+    tau_attr, d_attr = _number(attrs.get("tau_peak")), _number(attrs.get("d_peak"))
+    if math.isfinite(tau_attr) and math.isfinite(d_attr):
+        # the runner's numbers are the ones reported; the index follows its displacement
+        tau_peak, d_peak = tau_attr, d_attr
+        index = int(np.argmin(np.abs(displacement - d_attr)))
+    return SampleCurves(seed, directory, time, displacement, stress, smoothed, window,
+                        tau_peak, d_peak, index, series)
+
+
+def load_run(run_dir) -> tuple[dict | None, list[SampleCurves]]:
+    """(summary or None, usable samples); unusable samples are skipped with a warning.
+
+    Raises FileNotFoundError if run_dir is not a directory, ValueError if no sample is usable.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"{run_dir}: run directory not found")
+    summary = None
+    summary_path = run_dir / SUMMARY_NAME
+    if summary_path.exists():
+        try:
+            summary = json.loads(summary_path.read_text(encoding="utf-8"))
+        except ValueError as exc:
+            warnings.warn(f"{summary_path}: unreadable ({exc}); using the series only",
+                          FigureWarning, stacklevel=2)
+    samples = []
+    for seed, directory in _sample_dirs(run_dir, summary):
+        try:
+            samples.append(load_sample(seed, directory))
+        except (OSError, ValueError, KeyError) as exc:
+            warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+    if not samples:
+        raise ValueError(f"{run_dir}: no usable sample (no readable "
+                         f"sample_<seed>/{SERIES_NAME}); nothing to plot")
+    return summary, samples
+
+
+def summary_from_samples(samples: list[SampleCurves]) -> dict:
+    """A minimal summary (samples, mean, std) from the series when summary.json is missing."""
+    rows = [{"seed": s.seed, "tau_peak_MPa": s.tau_peak * 1e-6, "d_peak_mm": s.d_peak * 1e3}
+            for s in samples]
+    out = {"samples": rows, "mean": {}, "std": {}}
+    for key in ("tau_peak_MPa", "d_peak_mm"):
+        values = np.array([r[key] for r in rows])
+        out["mean"][key] = float(values.mean())
+        out["std"][key] = float(values.std(ddof=1)) if values.size > 1 else math.nan
+    return out
+
+
+# --- writing ---------------------------------------------------------------------------------
+def _new_figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=150, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: Path, written: list) -> None:
+    with io.atomic_path(path) as tmp:
+        fig.savefig(tmp, format=path.suffix.lstrip("."), dpi=fig.dpi)
+    written.append(path)
+
+
+def _write_text(path: Path, text: str, written: list) -> None:
+    with io.atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+    written.append(path)
+
+
+def _colors(n: int):
+    import matplotlib
+    cmap = matplotlib.colormaps["tab10"]
+    return [cmap(k % 10) for k in range(n)]
+
+
+def figure_stress_displacement(samples: list[SampleCurves], out_png: Path, written: list,
+                               pdf: bool = True) -> None:
+    """Paper Fig. 4: shear stress against imposed displacement, one line per sample."""
+    import matplotlib
+    with matplotlib.rc_context(_RC):
+        fig = _new_figure(7.2, 4.3)
+        ax = fig.add_subplot()
+        top = EXPERIMENT["tau_peak_MPa"]
+        for sample, color in zip(samples, _colors(len(samples))):
+            d_mm = sample.displacement * 1e3
+            ax.plot(d_mm, sample.stress * 1e-6, color=color, lw=0.5, alpha=0.25, zorder=1)
+            ax.plot(d_mm, sample.smoothed * 1e-6, color=color, lw=1.6, zorder=2,
+                    label=f"sample {sample.seed}")
+            ax.plot(sample.d_peak * 1e3, sample.tau_peak * 1e-6, "o", ms=6, mfc="white",
+                    mec=color, mew=1.6, zorder=4)
+            top = max(top, float(np.nanmax(sample.smoothed)) * 1e-6)
+        d_exp, tau_exp = EXPERIMENT["d_peak_mm"], EXPERIMENT["tau_peak_MPa"]
+        ax.plot([d_exp, d_exp], [0.0, tau_exp], "k--", lw=0.8, zorder=3)
+        ax.plot([0.0, d_exp], [tau_exp, tau_exp], "k--", lw=0.8, zorder=3)
+        ax.plot(d_exp, tau_exp, "*", color="k", ms=14, zorder=5,
+                label="experiments (mean of 5 cores)")
+        ax.plot(PAPER_SIMULATION["d_peak_mm"], PAPER_SIMULATION["tau_peak_MPa"], "D",
+                color="0.35", mfc="none", ms=7, mew=1.4, zorder=5,
+                label="paper simulations (LMGC90, mean)")
+        ax.plot([], [], "o", ms=6, mfc="white", mec="0.3", mew=1.6, label="peak of each sample")
+        bottom = min(0.0, min(float(np.nanmin(s.smoothed)) for s in samples) * 1e-6)
+        ax.set_xlim(0.0, DISPLACEMENT_END * 1e3)
+        ax.set_ylim(bottom, 1.12 * top)
+        ax.set_xlabel("Imposed displacement d (mm)")
+        ax.set_ylabel("Shear stress τ (MPa)")
+        ax.grid(True, lw=0.4, alpha=0.4)
+        ax.tick_params(direction="in", top=True, right=True)
+        window_mm = samples[0].window * 1e3
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False,
+                  title=f"moving average over {window_mm:g} mm\n(raw signal faint)",
+                  title_fontsize=8.5, alignment="left")
+        _save(fig, out_png, written)
+        if pdf:
+            _save(fig, out_png.with_suffix(".pdf"), written)
+
+
+def _fmt(value: float, digits: int, std: float = math.nan) -> str:
+    if not math.isfinite(value):
+        return "–"
+    text = f"{value:.{digits}f}"
+    if math.isfinite(std):
+        text += f" ± {std:.{digits}f}"
+    return text
+
+
+def _fmt_error(value: float) -> str:
+    return f"{100.0 * value:+.1f} %" if math.isfinite(value) else "–"
+
+
+def table2_markdown(rows: list[dict]) -> str:
+    lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
+             "through the experiments and the simulations (relative error to the experiments).",
+             "",
+             "| | τ [MPa] | d [mm] | rel. error τ | rel. error d |",
+             "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['label']} | {_fmt(r['tau_MPa'], 3, r['tau_std_MPa'])} | "
+                     f"{_fmt(r['d_mm'], 2, r['d_std_mm'])} | {_fmt_error(r['tau_rel_error'])} | "
+                     f"{_fmt_error(r['d_rel_error'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def table2_csv(rows: list[dict]) -> str:
+    import io as _stdio
+    keys = ["label", "tau_MPa", "tau_std_MPa", "d_mm", "d_std_mm", "n_samples",
+            "tau_rel_error", "d_rel_error"]
+    buffer = _stdio.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(keys)
+    for r in rows:
+        writer.writerow(["" if r[k] is None or (isinstance(r[k], float) and math.isnan(r[k]))
+                         else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k])
+                         for k in keys])
+    return buffer.getvalue()
+
+
+def figure_table2(rows: list[dict], out_png: Path, written: list) -> None:
+    """Table 2 as an image: a plain three-rule table (top, below the header, bottom)."""
+    import matplotlib
+    header = ["", "τ [MPa]", "d [mm]", "rel. error τ", "rel. error d"]
+    cells = [[r["label"].replace(" (this run, ", "\n(this run, "),
+              _fmt(r["tau_MPa"], 3, r["tau_std_MPa"]), _fmt(r["d_mm"], 2, r["d_std_mm"]),
+              _fmt_error(r["tau_rel_error"]), _fmt_error(r["d_rel_error"])] for r in rows]
+    with matplotlib.rc_context(_RC):
+        fig = Figure(figsize=(8.2, 2.3), dpi=150)
+        FigureCanvasAgg(fig)
+        ax = fig.add_axes((0.02, 0.04, 0.96, 0.70))
+        ax.axis("off")
+        table = ax.table(cellText=cells, colLabels=header, loc="upper center",
+                         cellLoc="center", colLoc="center",
+                         colWidths=[0.36, 0.17, 0.15, 0.16, 0.16], bbox=(0, 0, 1, 1))
+        table.auto_set_font_size(False)
+        table.set_fontsize(10)
+        for (row, col), cell in table.get_celld().items():
+            cell.set_edgecolor("none")
+            if row == 0:
+                cell.set_text_props(weight="bold")
+            if col == 0:
+                cell.set_text_props(ha="left")
+                cell.PAD = 0.02
+        n = len(rows) + 1
+        for y, lw in ((1.0, 1.2), ((n - 1) / n, 0.7), (0.0, 1.2)):
+            ax.plot([0, 1], [y, y], color="k", lw=lw, transform=ax.transAxes, clip_on=False)
+        fig.text(0.02, 0.96, "Table 2. Shear stress τ and displacement d at failure: "
+                 "experiments and simulations", ha="left", va="top", fontsize=10.5,
+                 weight="bold")
+        fig.text(0.02, 0.86, "relative error = (simulation − experiment) / experiment",
+                 ha="left", va="top", fontsize=8.5, color="0.3")
+        _save(fig, out_png, written)
+
+
+def _bonds_total(sample: SampleCurves, summary: dict | None) -> float:
+    """Initial bond count: intact + broken in the series (constant), else the summary's."""
+    s = sample.series
+    if "bonds_intact" in s and len(s["bonds_intact"]):
+        return float(sum(float(s[k][0]) for k in
+                         ("bonds_intact", "bonds_broken_tension", "bonds_broken_shear") if k in s))
+    for smp in (summary or {}).get("samples") or []:
+        if str(smp.get("seed")) == sample.seed and _number(smp.get("bonds_total")) > 0:
+            return _number(smp["bonds_total"])
+    return math.nan
+
+
+def figure_bonds_broken(samples: list[SampleCurves], summary: dict | None, out_png: Path,
+                        written: list) -> bool:
+    """Broken bonds against displacement: counts (left) and fraction of the initial bonds
+    (right); total solid, in tension dashed, in shear dotted, one colour per sample."""
+    import matplotlib
+    import matplotlib.ticker
+    from matplotlib.lines import Line2D
+    usable = [s for s in samples
+              if "bonds_broken_tension" in s.series and "bonds_broken_shear" in s.series]
+    if not usable:
+        warnings.warn("bonds_broken.png skipped: no series has bonds_broken_tension/shear",
+                      FigureWarning, stacklevel=3)
+        return False
+    with matplotlib.rc_context(_RC):
+        fig = _new_figure(10.0, 4.0)
+        ax_count, ax_frac = fig.subplots(1, 2)
+        for sample, color in zip(usable, _colors(len(usable))):
+            d_mm = sample.displacement * 1e3
+            tension = np.asarray(sample.series["bonds_broken_tension"], dtype=float)
+            shear = np.asarray(sample.series["bonds_broken_shear"], dtype=float)
+            total = tension + shear
+            initial = _bonds_total(sample, summary)
+            for ax, scale in ((ax_count, 1.0), (ax_frac, 1.0 / initial if initial > 0 else None)):
+                if scale is None:
+                    continue
+                ax.plot(d_mm, total * scale, color=color, lw=1.6, label=f"sample {sample.seed}")
+                ax.plot(d_mm, tension * scale, color=color, lw=1.0, ls="--")
+                ax.plot(d_mm, shear * scale, color=color, lw=1.0, ls=":")
+        for ax, label in ((ax_count, "Broken bonds (count)"),
+                          (ax_frac, "Broken bonds / initial bonds")):
+            ax.set_xlim(0.0, DISPLACEMENT_END * 1e3)
+            ax.set_ylim(bottom=0.0)
+            ax.set_xlabel("Imposed displacement d (mm)")
+            ax.set_ylabel(label)
+            ax.grid(True, lw=0.4, alpha=0.4)
+            ax.tick_params(direction="in", top=True, right=True)
+        ax_frac.yaxis.set_major_formatter(matplotlib.ticker.PercentFormatter(1.0))
+        ax_count.set_title("(a) counts", loc="left")
+        ax_frac.set_title("(b) fraction of the initial bonds", loc="left")
+        styles = [Line2D([], [], color="0.2", lw=1.6, label="total"),
+                  Line2D([], [], color="0.2", lw=1.0, ls="--", label="in tension"),
+                  Line2D([], [], color="0.2", lw=1.0, ls=":", label="in shear")]
+        handles, _ = ax_count.get_legend_handles_labels()
+        fig.legend(handles=handles + styles, loc="outside right upper", frameon=False)
+        _save(fig, out_png, written)
+    return True
+
+
+def _frame_stages(states_path: Path) -> list[tuple[float, str]]:
+    """(time, stage) of every frame of a states file, in frame order."""
+    io.frame_count(states_path)  # validates the file (schema, kind, frames group)
+    with h5py.File(states_path, "r") as f:
+        names = sorted(f["frames"].keys(), key=int)
+        out = []
+        for name in names:
+            attrs = f["frames"][name].attrs
+            stage = attrs.get("stage", "")
+            out.append((float(attrs.get("time", math.nan)),
+                        stage.decode() if isinstance(stage, bytes) else str(stage)))
+    return out
+
+
+def render_frames(stages: list[tuple[float, str]], peak_time: float) -> tuple[int, list[int]]:
+    """Frames for Fig. 2 (last "prepare" frame, else 0) and Fig. 3 (first "shear" frame and
+    the shear frame closest in time to the peak; empty when there is no shear frame)."""
+    prepare = [k for k, (_, stage) in enumerate(stages) if stage == "prepare"]
+    shear = [k for k, (_, stage) in enumerate(stages) if stage == "shear"]
+    sample_frame = prepare[-1] if prepare else 0
+    if not shear:
+        return sample_frame, []
+    if math.isfinite(peak_time):
+        at_peak = min(shear, key=lambda k: abs(stages[k][0] - peak_time))
+    else:
+        at_peak = shear[-1]
+    return sample_frame, [shear[0], at_peak]
+
+
+def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -> None:
+    sample = next((s for s in samples if (s.directory / STATES_NAME).is_file()), None)
+    if sample is None:
+        warnings.warn(f"fig2_sample.png and fig3_velocity.png skipped: no sample has a "
+                      f"{STATES_NAME}", FigureWarning, stacklevel=3)
+        return
+    states = sample.directory / STATES_NAME
+    try:
+        stages = _frame_stages(states)
+        if not stages:
+            raise ValueError(f"{states}: no frames")
+        from . import backend, render
+        if not backend.initialized():
+            backend.init(arch="cpu", precision="f64")
+    except Exception as exc:  # noqa: BLE001 - a failed render must not stop the plots
+        warnings.warn(f"fig2/fig3 skipped: {type(exc).__name__}: {exc}", FigureWarning,
+                      stacklevel=3)
+        return
+    sample_frame, velocity_frames = render_frames(stages, sample.peak_time)
+    jobs = [("fig2_sample.png", lambda out: render.figure_sample(states, out,
+                                                                 frame=sample_frame))]
+    if velocity_frames:
+        jobs.append(("fig3_velocity.png",
+                     lambda out: render.figure_velocity(states, out, frames=velocity_frames)))
+    else:
+        warnings.warn(f"fig3_velocity.png skipped: {states} has no 'shear' frame",
+                      FigureWarning, stacklevel=3)
+    for name, job in jobs:
+        out = out_dir / name
+        try:
+            job(out)
+        except Exception as exc:  # noqa: BLE001
+            warnings.warn(f"{name} skipped: {type(exc).__name__}: {exc}", FigureWarning,
+                          stacklevel=3)
+            continue
+        written.append(out)
+
+
+def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
+    """Write Fig. 4 (png, pdf), Table 2 (md, csv, png), bonds_broken.png and, with `render`,
+    Fig. 2 and Fig. 3 of the run in `run_dir` into `out_dir` (default run_dir/figures).
+
+    Returns the files written. Skipped samples and figures give a :class:`FigureWarning`.
+    """
+    run_dir = Path(run_dir)
+    summary, samples = load_run(run_dir)
+    out_dir = Path(out_dir) if out_dir is not None else run_dir / "figures"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+
+    figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written)
+    if summary is None:
+        warnings.warn(f"{run_dir / SUMMARY_NAME} missing: Table 2 from the series peaks",
+                      FigureWarning, stacklevel=2)
+    rows = table2_rows(summary if summary is not None else summary_from_samples(samples))
+    _write_text(out_dir / "table2.md", table2_markdown(rows), written)
+    _write_text(out_dir / "table2.csv", table2_csv(rows), written)
+    figure_table2(rows, out_dir / "table2.png", written)
+    figure_bonds_broken(samples, summary, out_dir / "bonds_broken.png", written)
+    if render:
+        _render_figures(samples, out_dir, written)
+    return written
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tcd.figures", description=__doc__.split(
+        "\n")[0])
+    parser.add_argument("run_dir", help="run directory (summary.json, sample_<seed>/...)")
+    parser.add_argument("--out", default=None, help="output folder (default RUN_DIR/figures)")
+    parser.add_argument("--no-render", action="store_true", help="skip Fig. 2 and Fig. 3")
+    args = parser.parse_args(argv)
+    for path in make_figures(args.run_dir, args.out, render=not args.no_render):
+        print(os.fspath(path))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,75 @@
+"""Reductions of a simulation state to numbers (NumPy, on host copies).
+
+Packing fraction counts, for each sphere, the exact volume of the part of it that lies
+between two horizontal planes (spherical caps), inside a cylinder of radius R; spheres are
+assumed inside the cylinder (the mould holds them).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def kinetic_energy(x_v, w, radius, density: float) -> float:
+    """Translational + rotational kinetic energy (J) of spheres of `density`."""
+    m = density * 4.0 / 3.0 * math.pi * radius**3
+    inertia = 0.4 * m * radius**2
+    return float(0.5 * np.sum(m * np.sum(x_v**2, axis=1)) + 0.5 * np.sum(inertia * np.sum(w**2, axis=1)))
+
+
+def slab_volume(z, r, z0: float, z1: float) -> np.ndarray:
+    """Volume of each sphere (centre height z, radius r) lying between z0 and z1 (m^3)."""
+    def below(h):  # volume of the sphere below height h
+        t = np.clip(h - (z - r), 0.0, 2 * r)
+        return math.pi * t**2 * (3 * r - t) / 3.0
+    return below(z1) - below(z0)
+
+
+def packing_fraction(x, r, radius: float, z0: float, z1: float) -> float:
+    """Solid fraction of the cylinder of `radius` between z0 and z1."""
+    if z1 <= z0:
+        raise ValueError("packing fraction needs z1 > z0")
+    solid = float(np.sum(slab_volume(x[:, 2], r, z0, z1)))
+    return solid / (math.pi * radius**2 * (z1 - z0))
+
+
+def layer_tops(x, r, layer) -> list[float]:
+    """Height of the top of each layer: 99th percentile of particle tops, robust to a few
+    grains that ride up (m)."""
+    out = []
+    for L in sorted(set(np.asarray(layer).tolist())):
+        sel = layer == L
+        out.append(float(np.percentile(x[sel, 2] + r[sel], 99.0)))
+    return out
+
+
+def coordination_number(i, j, n: int) -> float:
+    """Mean number of particle-particle contacts per particle (walls excluded)."""
+    pp = np.count_nonzero(np.asarray(j) < n)
+    return 2.0 * pp / n if n else 0.0
+
+
+def max_overlap(gap) -> float:
+    gap = np.asarray(gap)
+    return float(max(0.0, -gap.min())) if gap.size else 0.0
+
+
+def smooth(y, x, window: float) -> np.ndarray:
+    """Centred moving average of y over a window of width `window` in x units (x sorted);
+    near the ends the window shrinks to the points available."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    if window <= 0 or len(y) < 2:
+        return y.copy()
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    lo = np.searchsorted(x, x - 0.5 * window, side="left")
+    hi = np.searchsorted(x, x + 0.5 * window, side="right")
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
+def peak_of(displacement, stress, window: float):
+    """(peak stress, displacement at peak, index) of the smoothed stress curve."""
+    s = smooth(stress, displacement, window)
+    k = int(np.argmax(s))
+    return float(s[k]), float(np.asarray(displacement)[k]), k

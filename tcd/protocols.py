@@ -1,0 +1,293 @@
+"""Preparation (pour, vibrate, confine) and Leutner shear as sequences of phases.
+
+A protocol turns one scenario stage into phases, planned one at a time from the simulation
+state at the start of each phase (`plan(index, sim)`), so a run can be checkpointed anywhere
+and resumed: a phase is plain data (walls, step budget, settle rule) stored in the checkpoint.
+
+Preparation (PHYSICS.md section 7), for each course from the bottom up:
+  pour    : the course's spheres at random sites of a cubic lattice (seeded, with a small
+            random horizontal offset of each site to break the lattice symmetry) above the bed,
+            falling into the frictionless mould until settled: after the free-fall time of the
+            column, the run stops at the first check (every 50 steps) where the fastest sphere
+            moves slower than `settle_speed`, or at `max_settle_time`;
+  vibrate : a top plate placed on the bed oscillates vertically (amplitude, frequency,
+            duration) while its mean position descends to the layer's target height;
+  hold    : the plate held at the target height until settled.
+Then `confine`: top plate at the sample height, settle. The sample is saved for the shear.
+
+Leutner shear (section 8): bond every particle contact, replace the mould by two rings with a
+gap at the layer interface, move the upper ring and the top plate horizontally at constant
+velocity; record per step the reaction of the particles on the upper ring.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time as _time
+
+import numpy as np
+
+from . import observables as obs
+from . import packing
+from .walls import Wall, cylinder, plane
+
+PAPER_EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
+PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+SETTLE_CHECK_EVERY = 50
+
+
+@dataclasses.dataclass
+class Phase:
+    """One phase of a stage: walls, step budget and stopping rule (plain data, JSON-able)."""
+    name: str
+    walls: list
+    steps: int
+    settle: bool = False
+    min_steps: int = 0
+    info: dict = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["walls"] = [w.to_dict() for w in self.walls]
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Phase":
+        d = dict(d)
+        d["walls"] = [Wall.from_dict(w) for w in d["walls"]]
+        return cls(**d)
+
+
+def settled(sim, speed: float) -> bool:
+    v = sim.velocities()
+    return float(np.sqrt((v**2).sum(axis=1)).max()) < speed
+
+
+class Prepare:
+    """Two-course (or more) sample by pouring and vibration."""
+    kind = "prepare"
+
+    def __init__(self, stage, scenario, seed: int):
+        self.cfg, self.scn, self.seed = stage, scenario, seed
+        self.radius = stage.cylinder_diameter_mm * 5e-4
+        self.h = scenario.solver.time_step
+
+    # -- sizes ---------------------------------------------------------------------------------
+    def layer_count(self, course: str) -> int:
+        c = self.cfg
+        if c.particles_per_layer > 0:
+            return c.particles_per_layer
+        n = packing.count_for_layer(course, 2 * self.radius, c.layer_height_mm * 1e-3, c.packing_fraction)
+        return max(1, int(round(n / c.size_scale**3)))
+
+    def layer_radii(self, layer: int) -> np.ndarray:
+        course = self.cfg.courses[layer]
+        rng = np.random.default_rng([self.seed, layer, 0])
+        return packing.course_radii(course, self.layer_count(course), rng) * self.cfg.size_scale
+
+    def column_top(self) -> float:
+        return self.cfg.column_height_mm * 1e-3
+
+    def mould(self) -> list:
+        R, f = self.radius, self.scn.material.wall_friction
+        top = self.column_top() + 0.05
+        return [plane((0, 0, 0), (0, 0, 1), radius=R, friction=f, name="bottom plate"),
+                cylinder((0, 0, 0), (0, 0, 1), R, (0.0, top), friction=f, name="mould")]
+
+    def steps(self, seconds: float) -> int:
+        return max(1, int(round(seconds / self.h)))
+
+    # -- phases --------------------------------------------------------------------------------
+    def phase_names(self):
+        names = []
+        for L in range(len(self.cfg.courses)):
+            names += [("pour", L), ("vibrate", L), ("hold", L)]
+        return names + [("confine", len(self.cfg.courses) - 1)]
+
+    def plan(self, index: int, sim, t: float):
+        """Phase `index` planned from the current simulation (may return a new one)."""
+        names = self.phase_names()
+        if index >= len(names):
+            return None, sim
+        name, L = names[index]
+        c = self.cfg
+        if name == "pour":
+            sim = self._add_layer(sim, L, t)
+            top = float((sim.positions()[:, 2] + sim.radii()).max())
+            fall = math.sqrt(2.0 * top / max(self.scn.solver.gravity, 1e-9))
+            return Phase("pour", self.mould(), self.steps(c.max_settle_time), settle=True,
+                         min_steps=self.steps(fall), info={"layer": L}), sim
+        target = (L + 1) * c.layer_height_mm * 1e-3
+        if name == "vibrate":
+            x, r = sim.positions(), sim.radii()
+            bed = float(np.percentile(x[:, 2] + r, 99.5))
+            start = max(bed, target)
+            dur = max(c.vibration_duration, self.h)
+            top = plane((0, 0, start), (0, 0, -1), radius=self.radius,
+                        friction=self.scn.material.wall_friction, motion="sine", start=t,
+                        velocity=(0, 0, (target - start) / dur),
+                        amplitude=(0, 0, c.vibration_amplitude_mm * 1e-3),
+                        frequency=c.vibration_frequency, name="top plate")
+            return Phase("vibrate", self.mould() + [top], self.steps(c.vibration_duration),
+                         info={"layer": L, "plate_start": start, "target": target}), sim
+        if name == "confine":
+            target = c.sample_height_mm * 1e-3
+        top = plane((0, 0, target), (0, 0, -1), radius=self.radius,
+                    friction=self.scn.material.wall_friction, name="top plate")
+        return Phase(name, self.mould() + [top], self.steps(0.5), settle=True,
+                     min_steps=self.steps(0.02), info={"layer": L, "target": target}), sim
+
+    def _add_layer(self, sim, L: int, t: float):
+        from .simulation import Simulation
+        c = self.cfg
+        r_new = self.layer_radii(L)
+        rng = np.random.default_rng([self.seed, L, 1])
+        if sim is None:
+            base, old = 0.0, None
+        else:
+            old = sim.state_dict()
+            base = float((old["particles/x"][:, 2] + old["particles/radius"]).max())
+        x_new = packing.lattice_column(r_new, 2 * self.radius, base + 1e-3, rng,
+                                       max_height=self.column_top() - base,
+                                       jitter=c.lattice_jitter_mm * 1e-3)
+        layer_new = np.full(len(r_new), L, np.int32)
+        if old is None:
+            r, x, v, w, layer = r_new, x_new, None, None, layer_new
+        else:
+            r = np.concatenate([old["particles/radius"], r_new])
+            x = np.concatenate([old["particles/x"], x_new])
+            v = np.concatenate([old["particles/v"], np.zeros_like(x_new)])
+            w = np.concatenate([old["particles/w"], np.zeros_like(x_new)])
+            layer = np.concatenate([old["particles/layer"], layer_new])
+        new = make_simulation(self.scn, r, x, layer, self.mould(), t, self.radius,
+                              self.column_top() + 0.05)
+        if v is not None:
+            new.set_velocities(v)
+            new.set_angular_velocities(w)
+        if sim is not None:
+            sim.close()
+        return new
+
+    # -- records -------------------------------------------------------------------------------
+    def record(self, sim, phase) -> dict:
+        row = {"phase": ["pour", "vibrate", "hold", "confine"].index(phase.name),
+               "layer": phase.info.get("layer", 0)}
+        if len(sim.walls) > 2:
+            row["top_plate_force"] = float(-sim.wall_force(2)[2])
+            row["top_plate_z"] = float(sim.walls[2].position(sim.time)[2])
+        else:
+            row["top_plate_force"] = 0.0
+            row["top_plate_z"] = float("nan")
+        return row
+
+    def finish(self, sim) -> dict:
+        x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
+        H = self.cfg.sample_height_mm * 1e-3
+        tops = obs.layer_tops(x, r, layer)
+        bounds = [0.0] + [(L + 1) * self.cfg.layer_height_mm * 1e-3 for L in range(len(tops) - 1)] + [H]
+        c = sim.contact_arrays()
+        rho = np.hypot(x[:, 0], x[:, 1])
+        return {
+            "particles": int(sim.n),
+            "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(len(tops))],
+            "layer_tops_mm": [1e3 * t for t in tops],
+            "layer_heights_mm": [1e3 * (tops[0])] + [1e3 * (tops[k] - tops[k - 1]) for k in range(1, len(tops))],
+            "packing_fraction_per_layer": [obs.packing_fraction(x[layer == L], r[layer == L], self.radius,
+                                                                bounds[L], bounds[L + 1]) for L in range(len(tops))],
+            "packing_fraction": obs.packing_fraction(x, r, self.radius, 0.0, H),
+            "coordination_number": obs.coordination_number(c["i"], c["j"], sim.n),
+            "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),
+            "outside": int(np.count_nonzero((rho > self.radius) | (x[:, 2] < 0) | (x[:, 2] > H))),
+            "sample_height_mm": 1e3 * H,
+            "diameter_mm": 2e3 * self.radius,
+        }
+
+
+class Shear:
+    """Leutner shear test on a prepared sample."""
+    kind = "shear"
+
+    def __init__(self, stage, scenario, seed: int):
+        self.cfg, self.scn, self.seed = stage, scenario, seed
+        self.h = scenario.solver.time_step
+        self.velocity = stage.velocity_mm_per_min * 1e-3 / 60.0
+        self.displacement = stage.displacement_mm * 1e-3
+
+    def plan(self, index: int, sim, t: float):
+        if index > 0:
+            return None, sim
+        if sim is None:
+            raise ValueError("the shear stage needs a prepared sample (a prepare stage before it, "
+                             "or `sample = \"path/to/prepared.h5\"`)")
+        c = self.cfg
+        x, r = sim.positions(), sim.radii()
+        R = float(np.max([w.radius for w in sim.walls if w.kind == "cylinder"]))
+        H = float(max(w.position(t)[2] for w in sim.walls if w.kind == "plane" and w.direction[2] < 0))
+        z_i = 0.5 * H
+        half_gap = 0.5 * c.gap_mm * 1e-3
+        f = c.wall_friction
+        v = (self.velocity, 0.0, 0.0)
+        walls = [
+            plane((0, 0, 0), (0, 0, 1), radius=R, friction=f, name="bottom plate"),
+            cylinder((0, 0, 0), (0, 0, 1), R, (z_i - c.ring_height_mm * 1e-3, z_i - half_gap),
+                     friction=f, name="lower ring"),
+            cylinder((0, 0, 0), (0, 0, 1), R, (z_i + half_gap, z_i + c.ring_height_mm * 1e-3),
+                     friction=f, motion="constant", velocity=v, start=t, name="upper ring"),
+            plane((0, 0, H), (0, 0, -1), radius=R, friction=f, motion="constant", velocity=v,
+                  start=t, name="top plate"),
+        ]
+        bond_law = self.scn.bond.to_law(c.bond_mode)
+        sim.bond_law = bond_law
+        sim.set_walls(walls)
+        nb = sim.create_bonds(self.scn.bond.gap_tolerance_mm * 1e-3)
+        steps = int(round(self.displacement / self.velocity / self.h))
+        return Phase("shear", walls, steps, info={"z_interface": z_i, "radius": R, "t0": t,
+                                                  "bonds_created": nb}), sim
+
+    def record(self, sim, phase) -> dict:
+        R = phase.info["radius"]
+        f_ring = sim.wall_force(2)
+        d = sim.bonds_state_counts()
+        return {"displacement": self.velocity * (sim.time - phase.info["t0"]),
+                "shear_force": float(-f_ring[0]),
+                "shear_stress": float(-f_ring[0] / (math.pi * R**2)),
+                "bonds_intact": d[0], "bonds_broken_tension": d[1], "bonds_broken_shear": d[2]}
+
+    def finish(self, sim, phase, series: dict) -> dict:
+        c = self.cfg
+        d = np.asarray(series["displacement"])
+        s = np.asarray(series["shear_stress"])
+        tau, d_peak, k = obs.peak_of(d, s, c.smoothing_window_mm * 1e-3)
+        tail = obs.smooth(s, d, c.smoothing_window_mm * 1e-3)[-1]
+        st = sim.state_dict()
+        broken = st["bonds/state"] != 0
+        z_b = st["bonds/broken_pos"][broken, 2]
+        z_i = phase.info["z_interface"]
+        x, v = sim.positions(), sim.velocities()
+        upper = x[:, 2] > z_i + 0.01
+        lower = x[:, 2] < z_i - 0.01
+        return {
+            "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d_peak * 1e3, "residual_MPa": float(tail) * 1e-6,
+            "peak_index": k, "smoothing_window_mm": c.smoothing_window_mm,
+            "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),
+            "bonds_broken_tension": int(np.count_nonzero(st["bonds/state"] == 1)),
+            "bonds_broken_shear": int(np.count_nonzero(st["bonds/state"] == 2)),
+            "broken_within_10mm_of_plane": float(np.mean(np.abs(z_b - z_i) < 0.01)) if len(z_b) else 0.0,
+            "upper_mean_vx_over_ring": float(v[upper, 0].mean() / self.velocity) if upper.any() else 0.0,
+            "lower_mean_vx_over_ring": float(v[lower, 0].mean() / self.velocity) if lower.any() else 0.0,
+            "particles": int(sim.n),
+        }
+
+
+PROTOCOLS = {"prepare": Prepare, "shear": Shear}
+
+
+def make_simulation(scn, radius, x, layer, walls, t, cyl_radius, top, bond_law=None):
+    """A Simulation for a sample in a cylinder of `cyl_radius` up to height `top`."""
+    from .simulation import Simulation
+    m = 0.01
+    return Simulation(radius, x, layer=layer, walls=walls, density=scn.material.density,
+                      friction=scn.material.friction, settings=scn.solver.to_settings(),
+                      bond_law=bond_law or scn.bond.to_law(),
+                      domain=((-cyl_radius - m, -cyl_radius - m, 0.0), (cyl_radius + m, cyl_radius + m, top)),
+                      time=t)

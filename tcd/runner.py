@@ -1,0 +1,257 @@
+"""Run a scenario: samples (one per seed) through their stages, with outputs and checkpoints.
+
+Layout of an output directory:
+    scenario.toml              copy of the scenario text
+    summary.json               headline numbers of the whole run (written at the end)
+    sample_<seed>/states.h5    snapshots (every `output.snapshot_every` s of simulated time)
+    sample_<seed>/<stage>_series.h5 (+ .csv)   per-step series of each stage
+    sample_<seed>/prepared.h5  the prepared sample (checkpoint format), loaded by the shear stage
+    sample_<seed>/checkpoint.h5  latest checkpoint (every `output.checkpoint_every_s` s of wall time)
+    sample_<seed>/summary.json   the sample's numbers per stage
+Every file is replaced atomically (tcd.io). `resume=True` continues each unfinished sample from
+its checkpoint; because phases, snapshot times and settle checks depend only on the simulation
+state and step counts, the resumed run ends with the same numbers as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from . import __version__, backend, io
+from .protocols import PAPER_EXPERIMENT, PAPER_SIMULATION, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
+
+FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
+              "walls/kind", "walls/point", "walls/direction", "walls/radius", "walls/extent",
+              "walls/force", "contacts/i", "contacts/j", "contacts/impulse", "contacts/gap",
+              "bonds/i", "bonds/j", "bonds/state", "bonds/impulse", "bonds/broken_time")
+
+
+def frame_of(sim) -> dict:
+    d = sim.state_dict()
+    f = {k: d[k] for k in FRAME_KEYS}
+    f["bonds/broken_position"] = d["bonds/broken_pos"]
+    return f
+
+
+class Progress:
+    """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise."""
+
+    def __init__(self, enabled: bool, label: str, total: int, h: float):
+        self.enabled, self.label, self.total, self.h = enabled, label, total, h
+        self.tty = enabled and sys.stderr.isatty()
+        self.bar = None
+        self.t0 = self.last = time.perf_counter()
+        self.done = 0
+        if self.tty:
+            from tqdm import tqdm
+            self.bar = tqdm(total=total, desc=label, unit="step", dynamic_ncols=True, leave=False)
+
+    def update(self, step: int, sim_time: float, extra: str = "") -> None:
+        if not self.enabled:
+            return
+        n = step - self.done
+        self.done = step
+        if self.bar is not None:
+            self.bar.update(n)
+            self.bar.set_postfix_str(f"t={sim_time:.4f}s {extra}", refresh=False)
+            return
+        now = time.perf_counter()
+        if now - self.last >= 10.0:
+            self.last = now
+            rate = step / max(now - self.t0, 1e-9)
+            left = (self.total - step) / rate if rate > 0 else float("nan")
+            print(f"[tcd] {self.label}: step {step}/{self.total} t={sim_time:.4f} s "
+                  f"{rate:.1f} steps/s, at most {left / 60:.1f} min left {extra}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = True) -> dict:
+    """Run every sample of `scenario` into `out_dir`; returns the summary."""
+    out = pathlib.Path(out_dir)
+    backend.init(scenario.backend.arch, scenario.backend.precision)
+    if resume:
+        if not out.is_dir() or not any(out.glob("sample_*/checkpoint.h5")) and not any(out.glob("sample_*/summary.json")):
+            raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
+    out.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(out / "scenario.toml") as tmp:
+        pathlib.Path(tmp).write_text(scenario.text)
+    samples, wall = [], {}
+    t_start = time.perf_counter()
+    for seed in scenario.seeds:
+        sample_dir = out / f"sample_{seed}"
+        done = sample_dir / "summary.json"
+        if resume and done.exists():
+            s = json.loads(done.read_text())
+        else:
+            s = run_sample(scenario, seed, sample_dir, resume=resume, progress=progress)
+        samples.append(s)
+    summary = summarize(scenario, samples)
+    summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
+    io.write_json(out / "summary.json", summary)
+    return summary
+
+
+def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
+    sample_dir.mkdir(parents=True, exist_ok=True)
+    ck_path = sample_dir / "checkpoint.h5"
+    states = sample_dir / "states.h5"
+    h = scn.solver.time_step
+    sim = None
+    stage_idx, phase_idx, step_in_phase = 0, 0, 0
+    phase = None
+    series: dict = {}
+    result = {"seed": seed, "stages": {}, "wall_time_s": {}}
+    next_snapshot = 0.0
+    if resume and ck_path.exists():
+        arrays, meta = io.load_checkpoint(ck_path)
+        sim = restore_simulation(scn, arrays, meta)
+        stage_idx, phase_idx, step_in_phase = meta["stage"], meta["phase_index"], meta["step_in_phase"]
+        phase = Phase.from_json(meta["phase"]) if meta["phase"] else None
+        series = {k.split("/", 1)[1]: list(v) for k, v in arrays.items() if k.startswith("series/")}
+        result = meta["result"]
+        next_snapshot = meta["next_snapshot"]
+    elif states.exists():
+        for stale in (states, ck_path):
+            stale.unlink(missing_ok=True)
+    last_ck = time.perf_counter()
+
+    def checkpoint():
+        arrays = dict(sim.state_dict())
+        arrays.update({"series/" + k: np.asarray(v) for k, v in series.items()})
+        meta = {"stage": stage_idx, "phase_index": phase_idx, "step_in_phase": step_in_phase,
+                "phase": phase.to_json() if phase else None, "time": sim.time, "step": sim.step_index,
+                "result": result, "next_snapshot": next_snapshot, "walls": [w.to_dict() for w in sim.walls],
+                "bond_law": sim.bond_law.__dict__, "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
+                "tcd_version": __version__}
+        io.save_checkpoint(ck_path, arrays, meta)
+
+    while stage_idx < len(scn.stages):
+        stage = scn.stages[stage_idx]
+        proto = PROTOCOLS[stage.kind](stage, scn, seed)
+        if stage.kind == "shear" and getattr(stage, "sample", "") and sim is None:
+            sim = load_prepared(scn, stage.sample)
+        t_stage = time.perf_counter() - result["wall_time_s"].get(f"{stage_idx}:{stage.kind}", 0.0)
+        while True:
+            if phase is None:
+                phase, sim = proto.plan(phase_idx, sim, sim.time if sim is not None else 0.0)
+                if phase is None:
+                    break
+                sim.set_walls(phase.walls)
+                step_in_phase = 0
+            bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
+            bar.update(step_in_phase, sim.time)
+            while step_in_phase < phase.steps:
+                rec = sim.step()
+                step_in_phase += 1
+                if step_in_phase % scn.output.series_every == 0:
+                    row = {"time": sim.time, "step": sim.step_index, "sweeps": rec.sweeps,
+                           "residual": rec.residual, "contacts": rec.contacts,
+                           "kinetic_energy": sim.kinetic_energy()}
+                    row.update(proto.record(sim, phase))
+                    for k, v in row.items():
+                        series.setdefault(k, []).append(v)
+                if sim.time >= next_snapshot - 1e-12:
+                    io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
+                                    stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
+                    next_snapshot += scn.output.snapshot_every
+                if step_in_phase % 100 == 0:
+                    bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")
+                if (phase.settle and step_in_phase >= phase.min_steps
+                        and step_in_phase % SETTLE_CHECK_EVERY == 0
+                        and settled(sim, getattr(stage, "settle_speed", 0.005))):
+                    break
+                if time.perf_counter() - last_ck >= scn.output.checkpoint_every_s:
+                    result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
+                    checkpoint()
+                    last_ck = time.perf_counter()
+            bar.close()
+            result.setdefault("phases", []).append({"stage": stage.kind, "phase": phase.name,
+                                                    "steps": step_in_phase, "end_time": sim.time,
+                                                    **{k: v for k, v in phase.info.items()}})
+            last_phase = phase
+            phase_idx += 1
+            phase = None
+            result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
+            checkpoint()
+        # stage done: series, summary, prepared sample
+        arrays = {k: np.asarray(v) for k, v in series.items()}
+        if stage.kind == "shear":
+            numbers = proto.finish(sim, last_phase, arrays)
+            attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
+                     "smoothing_window": stage.smoothing_window_mm * 1e-3}
+        else:
+            numbers = proto.finish(sim)
+            attrs = {}
+        numbers["wall_time_s"] = time.perf_counter() - t_stage
+        numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)
+        result["stages"][f"{stage_idx}:{stage.kind}"] = numbers
+        units = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
+                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m"}
+        if arrays:
+            io.write_series(sample_dir / f"{stage.kind}_series.h5", arrays,
+                            units={k: u for k, u in units.items() if k in arrays}, attrs=attrs,
+                            csv_path=sample_dir / f"{stage.kind}_series.csv")
+        if stage.kind == "prepare":
+            io.save_checkpoint(sample_dir / "prepared.h5", sim.state_dict(),
+                               {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
+                                "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]})
+            io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage="prepare",
+                            scenario_text=scn.text, tcd_version=__version__)
+        series = {}
+        stage_idx += 1
+        phase_idx = 0
+        checkpoint()
+    flat = {"seed": seed, **result}
+    for key, numbers in result["stages"].items():
+        if key.endswith("prepare"):
+            flat.update({"particles": numbers["particles"], "packing_fraction": numbers["packing_fraction"]})
+        if key.endswith("shear"):
+            flat.update({k: numbers[k] for k in ("tau_peak_MPa", "d_peak_mm", "residual_MPa", "bonds_total",
+                                                  "bonds_broken", "bonds_broken_tension", "bonds_broken_shear",
+                                                  "particles")})
+    io.write_json(sample_dir / "summary.json", flat)
+    sim.close()
+    return flat
+
+
+def restore_simulation(scn, arrays: dict, meta: dict):
+    from .simulation import BondLaw, Simulation
+    from .walls import Wall
+    sim = Simulation(arrays["particles/radius"], arrays["particles/x"], layer=arrays["particles/layer"],
+                     walls=[Wall.from_dict(w) for w in meta["walls"]], density=scn.material.density,
+                     friction=scn.material.friction, settings=scn.solver.to_settings(),
+                     bond_law=BondLaw(**meta.get("bond_law", {})) if meta.get("bond_law") else scn.bond.to_law(),
+                     domain=tuple(np.asarray(d) for d in meta["domain"]), time=meta["time"])
+    sim.load_state_dict(arrays)
+    sim.step_index = int(meta.get("step", 0))
+    return sim
+
+
+def load_prepared(scn, path):
+    p = pathlib.Path(path)
+    arrays, meta = io.load_checkpoint(p)
+    return restore_simulation(scn, arrays, meta)
+
+
+def summarize(scn, samples: list) -> dict:
+    keys = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
+    have = [s for s in samples if "tau_peak_MPa" in s]
+    mean = {k: float(np.mean([s[k] for s in have])) for k in keys} if have else {}
+    std = {k: float(np.std([s[k] for s in have])) for k in keys} if have else {}
+    rel = {}
+    if have:
+        rel = {"tau_peak": mean["tau_peak_MPa"] / PAPER_EXPERIMENT["tau_peak_MPa"] - 1.0,
+               "d_peak": mean["d_peak_mm"] / PAPER_EXPERIMENT["d_peak_mm"] - 1.0}
+    wall = {f"sample_{s['seed']}": s.get("wall_time_s", {}) for s in samples}
+    return {"scenario": scn.name, "tcd_version": __version__, "arch": backend.arch(),
+            "precision": backend.precision(), "samples": samples, "mean": mean, "std": std,
+            "experiment": PAPER_EXPERIMENT, "paper_simulation": PAPER_SIMULATION,
+            "relative_error": rel, "wall_time_s": wall}
