@@ -42,7 +42,8 @@ EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
 #: paper Table 2, mean of the paper's 5 LMGC90 samples (MPa, mm)
 PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
 #: moving-average window (m of imposed displacement) when the series does not give one
-DEFAULT_SMOOTHING_WINDOW = 5e-5
+#: (the scenario default, shear.smoothing_window_mm = 0.1)
+DEFAULT_SMOOTHING_WINDOW = 1e-4
 #: end of the imposed displacement in the paper (m); Fig. 4's x range
 DISPLACEMENT_END = 2.5e-3
 
@@ -121,7 +122,8 @@ def table2_rows(summary: dict) -> list[dict]:
     Each row: ``label``, ``tau_MPa``, ``d_mm``, ``tau_std_MPa``, ``d_std_mm`` (NaN where not
     applicable), ``n_samples`` (None for the experiments), ``tau_rel_error``, ``d_rel_error``
     (signed, ``(value - experiment) / experiment``; NaN for the experiments row).
-    The run's mean and std come from ``summary["mean"]``/``["std"]``, else from its samples.
+    The run's mean and std come from ``summary["mean"]``/``["std"]``, else from its samples
+    (population std, as the runner writes it).
     """
     experiment = {**EXPERIMENT, **(summary.get("experiment") or {})}
     paper = {**PAPER_SIMULATION, **(summary.get("paper_simulation") or {})}
@@ -136,7 +138,7 @@ def table2_rows(summary: dict) -> list[dict]:
         if not math.isfinite(m) and values.size:
             m = float(values.mean())
         if not math.isfinite(s) and values.size > 1:
-            s = float(values.std(ddof=1))
+            s = float(values.std())     # population std, as the runner's summary
         return m, s
 
     tau_run, tau_std = run_stat("tau_peak_MPa")
@@ -267,7 +269,7 @@ def summary_from_samples(samples: list[SampleCurves]) -> dict:
     for key in ("tau_peak_MPa", "d_peak_mm"):
         values = np.array([r[key] for r in rows])
         out["mean"][key] = float(values.mean())
-        out["std"][key] = float(values.std(ddof=1)) if values.size > 1 else math.nan
+        out["std"][key] = float(values.std()) if values.size > 1 else math.nan
     return out
 
 

@@ -11,9 +11,16 @@ Preparation (PHYSICS.md section 7), for each course from the bottom up:
             column, the run stops at the first check (every 50 steps) where the fastest sphere
             moves slower than `settle_speed`, or at `max_settle_time`;
   vibrate : a top plate placed on the bed oscillates vertically (amplitude, frequency,
-            duration) while its mean position descends to the layer's target height;
-  hold    : the plate held at the target height until settled.
-Then `confine`: top plate at the sample height, settle. The sample is saved for the shear.
+            duration) while its mean position descends toward the layer's target height;
+  hold    : the plate descends to the target height and holds there until settled.
+Then `confine`: top plate to the sample height, settle. The sample is saved for the shear.
+
+The top plate is a servo-controlled kinematic wall: rigid spheres jammed above the target
+cannot be pushed lower by a plate whose motion is imposed blindly (the contact problem has no
+solution and the solver would leave overlaps, or squeeze grains through the mould). Each step
+the plate follows its prescribed motion, at most at the prescribed peak speed, except that it
+does not move down while the particles push on it with more than `force_limit` (a multiple of
+the weight of the sample). The final heights are then measured, not assumed.
 
 Leutner shear (section 8): bond every particle contact, replace the mould by two rings with a
 gap at the layer interface, move the upper ring and the top plate horizontally at constant
@@ -56,6 +63,29 @@ class Phase:
         d = dict(d)
         d["walls"] = [Wall.from_dict(w) for w in d["walls"]]
         return cls(**d)
+
+
+PLATE_FORCE_FACTOR = 3.0          # servo force limit: this many times the sample's weight
+
+
+def servo_step(sim, phase) -> None:
+    """Move the servo plate for the coming step (see module docstring)."""
+    sv = phase.info.get("servo")
+    if not sv:
+        return
+    t, h = sim.time, sim.settings.time_step
+    s = t + h - sv["t0"]
+    mean = max(sv["target"], sv["z0"] + sv["v_mean"] * s)
+    z_p = mean + sv["amplitude"] * math.sin(2 * math.pi * sv["frequency"] * s)
+    z = sv["z"]
+    dz = min(max(z_p - z, -sv["v_max"] * h), sv["v_max"] * h)
+    push = float(sim.wall_force(sv["wall"])[2]) if sim.step_index > 0 else 0.0
+    if dz < 0 and push > sv["force_limit"]:
+        dz = 0.0
+    plate = sim.walls[sv["wall"]]
+    sim.replace_wall(sv["wall"], plate.moved(point=(0.0, 0.0, z), motion="constant",
+                                             velocity=(0.0, 0.0, dz / h), start=t))
+    sv["z"] = z + dz
 
 
 def settled(sim, speed: float) -> bool:
@@ -118,24 +148,33 @@ class Prepare:
             return Phase("pour", self.mould(), self.steps(c.max_settle_time), settle=True,
                          min_steps=self.steps(fall), info={"layer": L}), sim
         target = (L + 1) * c.layer_height_mm * 1e-3
-        if name == "vibrate":
-            x, r = sim.positions(), sim.radii()
-            bed = float(np.percentile(x[:, 2] + r, 99.5))
-            start = max(bed, target)
-            dur = max(c.vibration_duration, self.h)
-            top = plane((0, 0, start), (0, 0, -1), radius=self.radius,
-                        friction=self.scn.material.wall_friction, motion="sine", start=t,
-                        velocity=(0, 0, (target - start) / dur),
-                        amplitude=(0, 0, c.vibration_amplitude_mm * 1e-3),
-                        frequency=c.vibration_frequency, name="top plate")
-            return Phase("vibrate", self.mould() + [top], self.steps(c.vibration_duration),
-                         info={"layer": L, "plate_start": start, "target": target}), sim
         if name == "confine":
             target = c.sample_height_mm * 1e-3
-        top = plane((0, 0, target), (0, 0, -1), radius=self.radius,
+        x, r = sim.positions(), sim.radii()
+        bed = float((x[:, 2] + r).max())
+        weight = float(np.sum(self.scn.material.density * 4 / 3 * math.pi * r**3)) * self.scn.solver.gravity
+        start = bed + 1e-4 if name == "vibrate" else (sim.walls[2].position(t)[2] if len(sim.walls) > 2 else bed + 1e-4)
+        amp = c.vibration_amplitude_mm * 1e-3 if name == "vibrate" else 0.0
+        dur = max(c.vibration_duration, self.h)
+        servo = {"wall": 2, "z": start, "z0": start, "target": target, "t0": t,
+                 "amplitude": amp, "frequency": c.vibration_frequency,
+                 "force_limit": PLATE_FORCE_FACTOR * max(weight, 1e-12)}
+        if name == "vibrate":
+            servo["v_mean"] = (target - start) / dur
+            servo["v_max"] = max(2 * math.pi * c.vibration_frequency * amp + abs(servo["v_mean"]), 1e-3)
+            steps, settle = self.steps(c.vibration_duration), False
+        else:
+            servo["v_mean"] = -0.05                      # approach the target at 5 cm/s
+            servo["v_max"] = 0.05
+            steps, settle = self.steps(0.5), True
+        top = plane((0, 0, start), (0, 0, -1), radius=self.radius,
                     friction=self.scn.material.wall_friction, name="top plate")
-        return Phase(name, self.mould() + [top], self.steps(0.5), settle=True,
-                     min_steps=self.steps(0.02), info={"layer": L, "target": target}), sim
+        return Phase(name, self.mould() + [top], steps, settle=settle,
+                     min_steps=self.steps(0.05) if settle else 0,
+                     info={"layer": L, "target": target, "servo": servo}), sim
+
+    def before_step(self, sim, phase) -> None:
+        servo_step(sim, phase)
 
     def _add_layer(self, sim, L: int, t: float):
         from .simulation import Simulation
@@ -173,7 +212,7 @@ class Prepare:
         row = {"phase": ["pour", "vibrate", "hold", "confine"].index(phase.name),
                "layer": phase.info.get("layer", 0)}
         if len(sim.walls) > 2:
-            row["top_plate_force"] = float(-sim.wall_force(2)[2])
+            row["top_plate_force"] = float(sim.wall_force(2)[2])
             row["top_plate_z"] = float(sim.walls[2].position(sim.time)[2])
         else:
             row["top_plate_force"] = 0.0
@@ -182,16 +221,16 @@ class Prepare:
 
     def finish(self, sim) -> dict:
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
-        H = self.cfg.sample_height_mm * 1e-3
+        H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
-        bounds = [0.0] + [(L + 1) * self.cfg.layer_height_mm * 1e-3 for L in range(len(tops) - 1)] + [H]
+        bounds = [0.0] + tops[:-1] + [H]          # measured interfaces, plates
         c = sim.contact_arrays()
         rho = np.hypot(x[:, 0], x[:, 1])
         return {
             "particles": int(sim.n),
             "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(len(tops))],
             "layer_tops_mm": [1e3 * t for t in tops],
-            "layer_heights_mm": [1e3 * (tops[0])] + [1e3 * (tops[k] - tops[k - 1]) for k in range(1, len(tops))],
+            "layer_heights_mm": [1e3 * (bounds[k + 1] - bounds[k]) for k in range(len(tops))],
             "packing_fraction_per_layer": [obs.packing_fraction(x[layer == L], r[layer == L], self.radius,
                                                                 bounds[L], bounds[L + 1]) for L in range(len(tops))],
             "packing_fraction": obs.packing_fraction(x, r, self.radius, 0.0, H),
@@ -199,6 +238,7 @@ class Prepare:
             "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),
             "outside": int(np.count_nonzero((rho > self.radius) | (x[:, 2] < 0) | (x[:, 2] > H))),
             "sample_height_mm": 1e3 * H,
+            "target_sample_height_mm": self.cfg.sample_height_mm,
             "diameter_mm": 2e3 * self.radius,
         }
 
@@ -243,6 +283,9 @@ class Shear:
         steps = int(round(self.displacement / self.velocity / self.h))
         return Phase("shear", walls, steps, info={"z_interface": z_i, "radius": R, "t0": t,
                                                   "bonds_created": nb}), sim
+
+    def before_step(self, sim, phase) -> None:
+        pass
 
     def record(self, sim, phase) -> dict:
         R = phase.info["radius"]

@@ -149,6 +149,7 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
             bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
             bar.update(step_in_phase, sim.time)
             while step_in_phase < phase.steps:
+                proto.before_step(sim, phase)
                 rec = sim.step()
                 step_in_phase += 1
                 if step_in_phase % scn.output.series_every == 0:
@@ -176,7 +177,7 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
             result.setdefault("phases", []).append({"stage": stage.kind, "phase": phase.name,
                                                     "steps": step_in_phase, "end_time": sim.time,
                                                     **{k: v for k, v in phase.info.items()}})
-            last_phase = phase
+            result["last_phase"] = phase.to_json()
             phase_idx += 1
             phase = None
             result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
@@ -184,7 +185,7 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
         # stage done: series, summary, prepared sample
         arrays = {k: np.asarray(v) for k, v in series.items()}
         if stage.kind == "shear":
-            numbers = proto.finish(sim, last_phase, arrays)
+            numbers = proto.finish(sim, Phase.from_json(result["last_phase"]), arrays)
             attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
                      "smoothing_window": stage.smoothing_window_mm * 1e-3}
         else:

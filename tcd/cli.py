@@ -1,0 +1,347 @@
+"""The `tcd` command: run scenarios, inspect, render and plot their files, benchmark.
+
+Each subcommand's handler imports what it needs when it runs, so `tcd --help` stays instant.
+Errors a user can fix (a bad scenario, a missing file, results that would be overwritten) print
+one `tcd: error: ...` message and exit with status 2 before any simulation starts; an interrupt
+exits with 130 and, for `tcd run`, says how to resume.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+ARCHS = ("cpu", "gpu")
+PRECISIONS = ("f64", "f32")
+COLOR_MODES = ("layer", "speed", "vx", "bond-damage")      # = tcd.render.COLOR_MODES
+CAMERAS = ("iso", "front", "perspective")                  # = tcd.render.CAMERA_PRESETS
+SECTIONS = ("xz", "yz")
+SUMMARY_FILE = "summary.json"
+
+
+class UsageError(Exception):
+    """A problem the user can fix; printed as `tcd: error: ...`, exit status 2."""
+
+
+# --- helpers -------------------------------------------------------------------------------------
+def _existing_file(path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    if path.is_dir():
+        raise UsageError(f"{path}: is a directory, expected a file")
+    return path
+
+
+def _existing_results(out_dir: Path) -> list[Path]:
+    """Files in `out_dir` that a fresh run would overwrite: a summary, checkpoints, HDF5 data."""
+    if not out_dir.is_dir():
+        return []
+    found = []
+    for path in sorted(out_dir.rglob("*")):
+        if path.is_file() and (path.name == SUMMARY_FILE or "checkpoint" in path.name
+                               or path.suffix == ".h5"):
+            found.append(path)
+    return found
+
+
+def _flatten(data, prefix: str = "") -> list[tuple[str, object]]:
+    rows = []
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            rows += _flatten(value, f"{name}.")
+        else:
+            rows.append((name, value))
+    return rows
+
+
+def _cell(value) -> str:
+    if isinstance(value, bool) or value is None:
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.6g}" if math.isfinite(value) else str(value)
+    if isinstance(value, (list, tuple)):
+        if len(value) <= 8 and all(not isinstance(v, (list, tuple, dict)) for v in value):
+            return ", ".join(_cell(v) for v in value)
+        return f"[{len(value)} items]"
+    return str(value)
+
+
+def format_table(data: dict) -> str:
+    """A dict (nested dicts flattened to dotted keys) as two aligned columns."""
+    rows = [(k, _cell(v)) for k, v in _flatten(data)]
+    if not rows:
+        return "(empty)"
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def _json_default(obj):
+    if hasattr(obj, "tolist"):          # NumPy scalars and arrays
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot write {type(obj).__name__} as JSON")
+
+
+def _print_result(result: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(result, indent=2, default=_json_default))
+    else:
+        print(format_table(result))
+
+
+# --- handlers ------------------------------------------------------------------------------------
+def _resume_command(args) -> str:
+    words = ["tcd", "run", args.scenario, "--out", str(args.out_dir)]
+    if args.arch:
+        words += ["--arch", args.arch]
+    if args.precision:
+        words += ["--precision", args.precision]
+    return shlex.join(words + ["--resume"])
+
+
+def cmd_run(args) -> int:
+    from .config import load_scenario
+    scenario = load_scenario(args.scenario).with_overrides(arch=args.arch,
+                                                            precision=args.precision)
+    out_dir = Path(args.out) if args.out else Path("runs") / scenario.name
+    args.out_dir = out_dir
+    if args.resume:
+        if not out_dir.is_dir():
+            raise UsageError(f"nothing to resume: {out_dir} does not exist "
+                             f"(run without --resume to start)")
+    else:
+        existing = _existing_results(out_dir)
+        if existing:
+            shown = ", ".join(str(p) for p in existing[:3])
+            more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
+            resumable = any(p.name == SUMMARY_FILE or "checkpoint" in p.name for p in existing)
+            advice = ("continue it with --resume or choose another --out directory" if resumable
+                      else "it has no checkpoint to resume from: remove it or choose another "
+                           "--out directory")
+            raise UsageError(f"{out_dir} already holds results ({shown}{more}); {advice}")
+    from .runner import run_scenario
+    summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True)
+    print(f"tcd: {scenario.name}: results in {out_dir}")
+    if summary:
+        print(format_table(summary))
+    return 0
+
+
+def cmd_info(args) -> int:
+    path = _existing_file(args.file)
+    from . import io
+    try:
+        print(io.info(path))
+    except OSError as exc:          # h5py reports unreadable files as OSError
+        raise UsageError(f"{path}: cannot read: {exc}") from None
+    return 0
+
+
+def _frames(text):
+    if text is None or text == "all":
+        return text
+    try:
+        return [int(k) for k in text.split(",") if k.strip()]
+    except ValueError:
+        raise UsageError(f"--frames {text!r}: expected 'all' or comma-separated frame indices") \
+            from None
+
+
+def cmd_render(args) -> int:
+    path = _existing_file(args.file)
+    frames = _frames(args.frames)
+    import tcd
+    tcd.init(args.arch, args.precision)
+    from .render import render_file
+    try:
+        render_file(path, args.out, frame=args.frame, frames=frames, color=args.color,
+                    section=args.section, camera=args.camera, width=args.width,
+                    height=args.height, fps=args.fps)
+    except RuntimeError as exc:     # e.g. no MP4 writer installed
+        raise UsageError(str(exc)) from None
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_figures(args) -> int:
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run directory")
+    from .figures import make_figures
+    written = make_figures(run_dir, args.out)
+    for path in written:
+        print(path)
+    if not written:
+        print(f"tcd: no figures written from {run_dir}", file=sys.stderr)
+    return 0
+
+
+def cmd_view(args) -> int:
+    path = _existing_file(args.file)
+    from .viewer import view
+    try:
+        view(path, frame=args.frame, color=args.color)
+    except RuntimeError as exc:     # no display or no Vulkan
+        raise UsageError(str(exc)) from None
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from . import bench
+    run = getattr(bench, args.benchmark, None)
+    if run is None:
+        raise UsageError(f"this tcd has no '{args.benchmark}' benchmark (tcd.bench."
+                         f"{args.benchmark} is missing)")
+    if args.benchmark == "scaling":
+        try:
+            sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+        except ValueError:
+            raise UsageError(f"--sizes {args.sizes!r}: expected comma-separated integers") \
+                from None
+        if not sizes or min(sizes) < 1:
+            raise UsageError(f"--sizes {args.sizes!r}: expected positive particle counts")
+        result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
+                     tolerance=args.tolerance, out=args.out)
+    else:
+        options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
+                       tolerance=args.tolerance, seed=args.seed)
+        if args.time is not None:       # else the benchmark's own duration
+            options["time"] = args.time
+        result = run(**options)
+    _print_result(result, args.json)
+    return 0
+
+
+# --- parser --------------------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def _backend_options(parser, *, default_arch=None, default_precision=None, what=""):
+    parser.add_argument("--arch", choices=ARCHS, default=default_arch,
+                        help=f"Taichi backend{what}")
+    parser.add_argument("--precision", choices=PRECISIONS, default=default_precision,
+                        help=f"floating-point precision{what}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+    parser = argparse.ArgumentParser(
+        prog="tcd", description="Taichi Contact Dynamics: granular samples and Leutner shear "
+                                "tests of asphalt-like materials (rigid spheres, bonds).")
+    parser.add_argument("--version", action="version", version=f"tcd {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("run", help="run a scenario (TOML) and write its results",
+                       description="Run every stage of a scenario for every seed. See "
+                                   "docs/scenarios.md for the file format.")
+    p.add_argument("scenario", metavar="SCENARIO.toml")
+    p.add_argument("--out", metavar="DIR", help="output directory (default runs/<name>)")
+    _backend_options(p, what=" (overrides [backend] of the scenario)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its last checkpoint")
+    p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint)")
+    p.add_argument("file", metavar="FILE.h5")
+    p.set_defaults(handler=cmd_info)
+
+    p = sub.add_parser("render", help="render snapshots of a states file to an image or "
+                                      "animation (offscreen)")
+    p.add_argument("file", metavar="FILE.h5")
+    p.add_argument("--out", required=True, metavar="IMAGE",
+                   help="output: .png (one frame), .gif or .mp4 (animation)")
+    p.add_argument("--frame", type=int, default=-1, metavar="K",
+                   help="frame index for a still image (default -1: the last)")
+    p.add_argument("--frames", metavar="all|K,K,...",
+                   help="frames of an animation (default all)")
+    p.add_argument("--color", choices=COLOR_MODES, default="layer")
+    p.add_argument("--section", choices=SECTIONS, default=None,
+                   help="cut away the half in front of this vertical plane through the axis")
+    p.add_argument("--camera", choices=CAMERAS, default="iso")
+    p.add_argument("--width", type=_positive_int, default=1600)
+    p.add_argument("--height", type=_positive_int, default=1200)
+    p.add_argument("--fps", type=_positive_float, default=10.0, help="animation frame rate")
+    _backend_options(p, default_arch="cpu", default_precision="f64")
+    p.set_defaults(handler=cmd_render)
+
+    p = sub.add_parser("figures", help="make the report figures of a run directory")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--out", metavar="DIR", help="where to write them (default: inside RUN_DIR)")
+    p.set_defaults(handler=cmd_figures)
+
+    p = sub.add_parser("view", help="interactive viewer of a states file (needs a display)")
+    p.add_argument("file", metavar="FILE.h5")
+    p.add_argument("--frame", type=int, default=-1, metavar="K", help="first frame shown")
+    p.add_argument("--color", choices=COLOR_MODES, default="layer")
+    p.set_defaults(handler=cmd_view)
+
+    p = sub.add_parser("bench", help="benchmarks: seconds per particle step, with accuracy")
+    bench_sub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True)
+    for name, particles, text in (("pour", 2600, "pour spheres into a cylinder"),
+                                  ("shear", 5200, "Leutner shear of a bonded sample")):
+        b = bench_sub.add_parser(name, help=text)
+        b.add_argument("--particles", type=_positive_int, default=particles, metavar="N",
+                       help=f"particle count (default {particles})")
+        b.add_argument("--time", type=_positive_float, default=None, metavar="T",
+                       help="simulated seconds (default: the benchmark's own)")
+        _backend_options(b, default_arch="cpu", default_precision="f64")
+        b.add_argument("--tolerance", type=_positive_float, default=1e-4)
+        b.add_argument("--seed", type=int, default=1)
+        b.add_argument("--json", action="store_true", help="print JSON instead of a table")
+        b.set_defaults(handler=cmd_bench)
+    b = bench_sub.add_parser("scaling", help="cost per particle step against particle count")
+    b.add_argument("--sizes", default="1000,3000,10000,30000,100000", metavar="N,N,...")
+    b.add_argument("--steps", type=_positive_int, default=200)
+    _backend_options(b, default_arch="cpu", default_precision="f64")
+    b.add_argument("--tolerance", type=_positive_float, default=1e-4)
+    b.add_argument("--out", default="renders/scaling", metavar="DIR")
+    b.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    b.set_defaults(handler=cmd_bench)
+    return parser
+
+
+def _error(message) -> int:
+    print(f"tcd: error: {message}", file=sys.stderr)
+    return EXIT_USAGE
+
+
+def main(argv=None) -> int:
+    """Run the `tcd` command with `argv` (default sys.argv[1:]); returns the exit status
+    (argparse's own exits, --help, --version and usage errors, are returned, not raised)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
+    try:
+        return args.handler(args)
+    except KeyboardInterrupt:
+        if args.command == "run" and getattr(args, "out_dir", None) is not None:
+            print(f"\ninterrupted; resume with: {_resume_command(args)}", file=sys.stderr)
+        else:
+            print("\ninterrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (UsageError, ValueError, FileNotFoundError) as exc:
+        return _error(exc)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,597 @@
+"""Scenario files: TOML text -> typed, frozen configuration (pydantic v2 models).
+
+A scenario is data: a name, the seeds (one sample each), the backend, solver, material, bond
+and output settings, and a non-empty list of stages (`[[stage]]` tables, `kind = "prepare"` or
+`kind = "shear"`). docs/scenarios.md lists every key with its unit, default and meaning.
+
+Invariants:
+- Values are SI unless the key name says otherwise (`_mm`, `_MPa`, `_per_min`); the models keep
+  the file's numbers and expose SI properties (`cylinder_diameter`, `velocity`, ...).
+- Parsing refuses bad input before any simulation starts. Every problem becomes one line
+  `FILE: KEY: reason` of a single `ScenarioError` (a ValueError): KEY is a dotted path with
+  1-based array indices (`stage[2].vibration_frequency`, `solver.time_step`, `seeds[3]`).
+  Refused: unknown keys, wrong types (strict: no string-to-number coercion; an integer is
+  accepted where a float is expected), missing required values, out-of-range or non-finite
+  numbers, physically impossible combinations (checked by model validators), malformed TOML
+  (with its line and column) and missing files.
+- Every model is frozen (assignment raises) and forbids extra keys; arrays are stored as tuples.
+- Importing this module does not import the solver: `to_settings()` / `to_law()` import
+  `tcd.simulation` when called, the packing checks import `tcd.packing` (NumPy only).
+"""
+from __future__ import annotations
+
+import difflib
+import errno
+import os
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Optional, Union
+
+from pydantic import (BaseModel, ConfigDict, Field, ValidationError, field_validator,
+                      model_validator)
+
+STAGE_KINDS = ("prepare", "shear")
+COURSE_NAMES = ("binder", "surface")
+NAME_PATTERN = r"^[A-Za-z0-9_.-]+$"
+#: a sample may be confined to no less than this fraction of its poured layers' total height
+MIN_SAMPLE_FRACTION = 0.9
+#: keys of `Scenario` filled by the loader, not by the file
+_LOADER_FIELDS = ("text", "source")
+
+
+# --- errors ------------------------------------------------------------------------------------
+class ScenarioError(ValueError):
+    """A scenario that cannot be run. `problems`: (key, reason) pairs; the message has one line
+    `SOURCE: KEY: reason` per problem (`SOURCE: reason` where no key applies)."""
+
+    def __init__(self, source: str, problems):
+        self.source = str(source)
+        self.problems = tuple((str(k), str(r)) for k, r in problems)
+        self.message = "\n".join(f"{self.source}: {k}: {r}" if k else f"{self.source}: {r}"
+                                 for k, r in self.problems)
+        super().__init__(self.message)
+
+    def __str__(self) -> str:    # an OSError subclass would otherwise format errno/strerror
+        return self.message
+
+
+class ScenarioNotFoundError(ScenarioError, FileNotFoundError):
+    """The scenario file (or a file it names) does not exist."""
+
+    def __init__(self, source: str, problems):
+        ScenarioError.__init__(self, source, problems)
+        self.errno, self.strerror, self.filename = errno.ENOENT, str(self), self.source
+
+
+class _Problems(ValueError):
+    """Raised by model validators: (key, reason) pairs, keys relative to the raising model."""
+
+    def __init__(self, problems):
+        self.problems = list(problems)
+        super().__init__("; ".join(f"{k}: {r}" for k, r in self.problems))
+
+
+def _raise_if(problems) -> None:
+    if problems:
+        raise _Problems(problems)
+
+
+# --- models ------------------------------------------------------------------------------------
+class _Model(BaseModel):
+    """Frozen, closed, strictly typed; TOML arrays become tuples."""
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _arrays_as_tuples(cls, data: Any) -> Any:
+        # strict mode takes only tuples for tuple fields; TOML gives lists
+        if isinstance(data, dict):
+            return {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return data
+
+
+class BackendConfig(_Model):
+    """arch: "cpu" or "gpu"; precision: "f64" or "f32" (the real type of every field)."""
+    arch: Literal["cpu", "gpu"] = "cpu"
+    precision: Literal["f64", "f32"] = "f64"
+
+
+class SolverConfig(_Model):
+    """Moreau-Jean / NLGS settings. time_step H (s); theta in [0.5, 1]; tolerance on the
+    relative impulse change per sweep; max_sweeps per step; check_every: sweeps between
+    convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial" or
+    "coloured"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z)."""
+    time_step: float = Field(2e-4, gt=0)
+    theta: float = Field(1.0, ge=0.5, le=1.0)
+    tolerance: float = Field(1e-4, gt=0)
+    max_sweeps: int = Field(1000, ge=1)
+    check_every: int = Field(1, ge=1)
+    schedule: Literal["auto", "serial", "coloured"] = "auto"
+    alert_ratio: float = Field(0.1, gt=0)
+    gravity: float = Field(9.81, ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "SolverConfig":
+        _raise_if([("check_every", f"must not exceed max_sweeps ({self.max_sweeps}), got "
+                                   f"{self.check_every}: convergence would never be checked")]
+                  if self.check_every > self.max_sweeps else [])
+        return self
+
+    def to_settings(self):
+        """The engine's `tcd.simulation.SolverSettings` for these values."""
+        from .simulation import SolverSettings
+        return SolverSettings(time_step=self.time_step, theta=self.theta,
+                              tolerance=self.tolerance, max_sweeps=self.max_sweeps,
+                              check_every=self.check_every, schedule=self.schedule,
+                              alert_ratio=self.alert_ratio, gravity=(0.0, 0.0, -self.gravity))
+
+
+class MaterialConfig(_Model):
+    """density of the grains (kg/m^3); friction: particle-particle Coulomb coefficient;
+    wall_friction: particle-wall coefficient during preparation."""
+    density: float = Field(2600.0, gt=0)
+    friction: float = Field(0.7, ge=0)
+    wall_friction: float = Field(0.0, ge=0)
+
+
+class BondConfig(_Model):
+    """Burgers bonds created at the start of a shear stage. mode: "paper" (secant stiffness
+    1/J(age)) or "burgers" (incremental four-parameter model); Maxwell and Kelvin stiffness (N/m)
+    and viscosity (N s/m) of the normal law; poisson_ratio sets the tangential law;
+    yield_stress_MPa: bond strength; gap_tolerance_mm: largest gap of a pair still bonded;
+    friction_after_break: Coulomb coefficient of a broken bond."""
+    mode: Literal["paper", "burgers"] = "paper"
+    maxwell_stiffness: float = Field(2e6, gt=0)
+    maxwell_viscosity: float = Field(2e7, gt=0)
+    kelvin_stiffness: float = Field(2e6, gt=0)
+    kelvin_viscosity: float = Field(2e7, gt=0)
+    poisson_ratio: float = Field(0.3, gt=-1.0, lt=0.5)
+    yield_stress_MPa: float = Field(2.7, gt=0)
+    gap_tolerance_mm: float = Field(0.01, ge=0)
+    friction_after_break: float = Field(0.7, ge=0)
+
+    @property
+    def yield_stress(self) -> float:
+        """Bond strength (Pa)."""
+        return self.yield_stress_MPa * 1e6
+
+    @property
+    def gap_tolerance(self) -> float:
+        """Largest gap of a bonded pair (m)."""
+        return self.gap_tolerance_mm * 1e-3
+
+    def to_law(self, mode: Optional[str] = None):
+        """The engine's `tcd.simulation.BondLaw`; `mode` overrides `self.mode` (a shear stage's
+        `bond_mode`) when not None."""
+        from .simulation import BondLaw
+        return BondLaw(mode=self.mode if mode is None else mode,
+                       maxwell_stiffness=self.maxwell_stiffness,
+                       maxwell_viscosity=self.maxwell_viscosity,
+                       kelvin_stiffness=self.kelvin_stiffness,
+                       kelvin_viscosity=self.kelvin_viscosity,
+                       poisson_ratio=self.poisson_ratio, yield_stress=self.yield_stress,
+                       friction_after_break=self.friction_after_break)
+
+
+class OutputConfig(_Model):
+    """snapshot_every: simulated seconds between state snapshots; checkpoint_every_s: wall-clock
+    seconds between checkpoints; series_every: steps between time-series records."""
+    snapshot_every: float = Field(0.05, gt=0)
+    checkpoint_every_s: float = Field(60.0, gt=0)
+    series_every: int = Field(1, ge=1)
+
+
+class PrepareStage(_Model):
+    """Pour and vibrate `courses` (bottom first) layer by layer in a cylinder, then confine the
+    sample between two plates `sample_height_mm` apart. Each layer has `particles_per_layer`
+    spheres (0: enough to fill `layer_height_mm` at `packing_fraction`); sphere sizes follow the
+    course's table (PHYSICS.md section 7) times `size_scale`. Spheres start at lattice sites
+    (`lattice_jitter_mm` horizontal offsets) in a column up to `column_height_mm` and fall until
+    the fastest is below `settle_speed` or `max_settle_time` has passed; the top plate then
+    vibrates (`vibration_amplitude_mm`, `vibration_frequency`, `vibration_duration`)."""
+    kind: Literal["prepare"]
+    cylinder_diameter_mm: float = Field(150.0, gt=0)
+    layer_height_mm: float = Field(60.0, gt=0)
+    packing_fraction: float = Field(0.587, gt=0, lt=0.74)
+    courses: tuple[Literal["binder", "surface"], ...] = Field(("binder", "surface"),
+                                                              min_length=1, max_length=4)
+    particles_per_layer: int = Field(0, ge=0)
+    size_scale: float = Field(1.0, gt=0)
+    column_height_mm: float = Field(1600.0, gt=0)
+    lattice_jitter_mm: float = Field(0.2, ge=0)
+    settle_speed: float = Field(0.005, gt=0)
+    max_settle_time: float = Field(3.0, gt=0)
+    vibration_amplitude_mm: float = Field(6.0, ge=0)
+    vibration_frequency: float = Field(30.0, gt=0)
+    vibration_duration: float = Field(1.0, ge=0)
+    sample_height_mm: float = Field(120.0, gt=0)
+
+    @property
+    def cylinder_diameter(self) -> float:
+        return self.cylinder_diameter_mm * 1e-3
+
+    @property
+    def layer_height(self) -> float:
+        return self.layer_height_mm * 1e-3
+
+    @property
+    def column_height(self) -> float:
+        return self.column_height_mm * 1e-3
+
+    @property
+    def lattice_jitter(self) -> float:
+        return self.lattice_jitter_mm * 1e-3
+
+    @property
+    def vibration_amplitude(self) -> float:
+        return self.vibration_amplitude_mm * 1e-3
+
+    @property
+    def sample_height(self) -> float:
+        return self.sample_height_mm * 1e-3
+
+    def largest_diameter(self) -> float:
+        """Diameter (m) of the largest size class present in any of the courses, scaled."""
+        from . import packing
+        return max(float(packing.DIAMETERS[packing.COURSES[c] > 0].max())
+                   for c in self.courses) * self.size_scale
+
+    def layer_particle_count(self, course: str) -> int:
+        """Spheres in one layer of `course`: `particles_per_layer`, or (when 0) enough spheres of
+        the scaled size table to fill the layer's cylinder at `packing_fraction` (at least 1)."""
+        if self.particles_per_layer > 0:
+            return self.particles_per_layer
+        from . import packing
+        n = packing.count_for_layer(course, self.cylinder_diameter, self.layer_height,
+                                    self.packing_fraction)
+        return max(1, int(round(n / self.size_scale**3)))
+
+    @model_validator(mode="after")
+    def _check(self) -> "PrepareStage":
+        problems = []
+        d_max = self.largest_diameter() * 1e3
+        if d_max >= self.cylinder_diameter_mm:
+            problems.append(("cylinder_diameter_mm",
+                             f"particles larger than the cylinder: the largest sphere is "
+                             f"{d_max:g} mm (size table x size_scale {self.size_scale:g}), the "
+                             f"cylinder diameter {self.cylinder_diameter_mm:g} mm"))
+        need = len(self.courses) * self.layer_height_mm * MIN_SAMPLE_FRACTION
+        if self.sample_height_mm < need:
+            problems.append(("sample_height_mm",
+                             f"{self.sample_height_mm:g} mm is below {MIN_SAMPLE_FRACTION:g} x "
+                             f"{len(self.courses)} courses x layer_height_mm "
+                             f"{self.layer_height_mm:g} = {need:g} mm: rigid grains cannot be "
+                             f"compressed that much"))
+        if self.vibration_amplitude_mm >= self.layer_height_mm:
+            problems.append(("vibration_amplitude_mm",
+                             f"{self.vibration_amplitude_mm:g} mm must be smaller than "
+                             f"layer_height_mm ({self.layer_height_mm:g} mm)"))
+        if not problems:
+            problems += self._column_problems()
+        _raise_if(problems)
+        return self
+
+    def _column_problems(self) -> list:
+        """Each course must fit on the lattice of its pouring column (as tcd.packing builds
+        it), above the layers poured before it."""
+        import numpy as np
+
+        from . import packing
+        rng = np.random.default_rng(0)
+        for k, course in enumerate(self.courses):
+            base = k * self.layer_height
+            room = self.column_height - base
+            radii = packing.course_radii(course, self.layer_particle_count(course), rng)
+            key = "column_height_mm"
+            try:
+                if room <= 0:
+                    raise ValueError(f"no room above the {k} layer(s) poured before it")
+                packing.lattice_column(radii * self.size_scale, self.cylinder_diameter, base, rng,
+                                       max_height=room, jitter=self.lattice_jitter)
+            except ValueError as exc:
+                if "column diameter" in str(exc) or "too narrow" in str(exc):
+                    key = "cylinder_diameter_mm"
+                return [(key, f"course {k + 1} ({course}, {len(radii)} spheres) does not fit "
+                              f"its pouring column: {exc}")]
+        return []
+
+
+class ShearStage(_Model):
+    """Leutner shear test: the cylinder is replaced by two rings (`ring_height_mm` each,
+    `gap_mm` apart at the sample's mid-height); the upper ring and the top plate move
+    horizontally at `velocity_mm_per_min` until `displacement_mm`. Bonds (the `[bond]` law,
+    `bond_mode` overriding its mode) are created between touching particles at the start.
+    `sample`: "" for the sample of the preceding prepare stage, else a state file path
+    (relative paths are relative to the scenario file's directory)."""
+    kind: Literal["shear"]
+    displacement_mm: float = Field(2.5, gt=0)
+    velocity_mm_per_min: float = Field(50.0, gt=0)
+    ring_height_mm: float = Field(60.0, gt=0)
+    gap_mm: float = Field(1.0, ge=0)
+    wall_friction: float = Field(0.0, ge=0)
+    smoothing_window_mm: float = Field(0.1, gt=0)
+    bond_mode: Optional[Literal["paper", "burgers"]] = None
+    sample: str = ""
+
+    @property
+    def displacement(self) -> float:
+        return self.displacement_mm * 1e-3
+
+    @property
+    def velocity(self) -> float:
+        """Speed of the upper ring (m/s)."""
+        return self.velocity_mm_per_min * 1e-3 / 60.0
+
+    @property
+    def duration(self) -> float:
+        """Simulated time of the test (s)."""
+        return self.displacement / self.velocity
+
+    @property
+    def ring_height(self) -> float:
+        return self.ring_height_mm * 1e-3
+
+    @property
+    def gap(self) -> float:
+        return self.gap_mm * 1e-3
+
+    @property
+    def smoothing_window(self) -> float:
+        return self.smoothing_window_mm * 1e-3
+
+    @model_validator(mode="after")
+    def _check(self) -> "ShearStage":
+        problems = []
+        if self.gap_mm >= self.ring_height_mm:
+            problems.append(("gap_mm", f"shear gap {self.gap_mm:g} mm must be smaller than "
+                                       f"ring_height_mm ({self.ring_height_mm:g} mm)"))
+        if self.smoothing_window_mm >= self.displacement_mm:
+            problems.append(("smoothing_window_mm",
+                             f"{self.smoothing_window_mm:g} mm must be smaller than "
+                             f"displacement_mm ({self.displacement_mm:g} mm)"))
+        _raise_if(problems)
+        return self
+
+
+Stage = Annotated[Union[PrepareStage, ShearStage], Field(discriminator="kind")]
+_STAGE_MODELS = {"prepare": PrepareStage, "shear": ShearStage}
+
+
+class Scenario(_Model):
+    """One scenario file. name: run name (letters, digits, '_', '.', '-'; default output
+    runs/<name>); seeds: one sample per seed; stages: run in order, each on the previous one's
+    result. text: the file's text as read; source: its path ("<string>" when parsed from text)."""
+    name: str = Field(pattern=NAME_PATTERN)
+    description: str = ""
+    seeds: tuple[Annotated[int, Field(ge=0)], ...] = Field((1,), min_length=1)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
+    solver: SolverConfig = Field(default_factory=SolverConfig)
+    material: MaterialConfig = Field(default_factory=MaterialConfig)
+    bond: BondConfig = Field(default_factory=BondConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+    stages: tuple[Stage, ...] = Field(alias="stage", min_length=1)
+    text: str = Field("", repr=False)
+    source: str = "<string>"
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_not_a_directory_alias(cls, name: str) -> str:
+        if name in (".", ".."):
+            raise ValueError(f"must not be {name!r}: it names the output directory runs/<name>")
+        return name
+
+    @model_validator(mode="after")
+    def _check(self) -> "Scenario":
+        problems = []
+        seen = set()
+        for k, seed in enumerate(self.seeds):
+            if seed in seen:
+                problems.append((f"seeds[{k + 1}]", f"duplicate seed {seed}: each seed makes "
+                                                    f"one sample"))
+            seen.add(seed)
+        prepared = None
+        for k, stage in enumerate(self.stages):
+            if isinstance(stage, PrepareStage):
+                prepared = stage
+                continue
+            key = f"stage[{k + 1}]"
+            if stage.sample:
+                continue
+            if prepared is None:
+                problems.append((f"{key}.sample", "a shear stage needs a preceding prepare "
+                                                  "stage or a sample path"))
+            elif 2 * stage.ring_height_mm < prepared.sample_height_mm:
+                problems.append((f"{key}.ring_height_mm",
+                                 f"two rings of {stage.ring_height_mm:g} mm cannot confine the "
+                                 f"{prepared.sample_height_mm:g} mm sample of the preceding "
+                                 f"prepare stage (ring_height_mm must be at least half of "
+                                 f"sample_height_mm)"))
+        _raise_if(problems)
+        return self
+
+    def with_overrides(self, arch: Optional[str] = None,
+                       precision: Optional[str] = None) -> "Scenario":
+        """A copy with the backend's arch and/or precision replaced (None: keep)."""
+        update = {k: v for k, v in (("arch", arch), ("precision", precision)) if v is not None}
+        if not update:
+            return self
+        backend = _validate(BackendConfig, {**self.backend.model_dump(), **update},
+                            f"{self.source} (command-line override)", prefix="backend")
+        return self.model_copy(update={"backend": backend})
+
+
+# --- parsing -----------------------------------------------------------------------------------
+def load_scenario(path) -> Scenario:
+    """Read and validate the scenario file at `path` (see parse_scenario)."""
+    source = os.fspath(path)
+    try:
+        raw = Path(source).read_bytes()
+    except FileNotFoundError:
+        raise ScenarioNotFoundError(source, [("", "no such scenario file")]) from None
+    except IsADirectoryError:
+        raise ScenarioError(source, [("", "is a directory, not a scenario file")]) from None
+    except OSError as exc:
+        raise ScenarioError(source, [("", f"cannot read the scenario file: {exc.strerror}")]) \
+            from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(source, [("", f"not UTF-8 text (byte {exc.start}): TOML files "
+                                          f"are UTF-8")]) from None
+    return parse_scenario(text, source)
+
+
+def parse_scenario(text: str, source: str = "<string>") -> Scenario:
+    """Validate the TOML `text` of a scenario; `source` names it in error messages and is the
+    base directory of relative `sample` paths (the working directory for "<...>" sources).
+    Raises ScenarioError listing every problem found."""
+    source = str(source)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        message = str(exc)
+        where = re.search(r"\s*\((at line \d+, column \d+|at end of document)\)\s*$", message)
+        key = where.group(1).removeprefix("at ") if where else ""
+        reason = message[:where.start()] if where else message
+        raise ScenarioError(source, [(key, f"malformed TOML: {reason}")]) from None
+    reserved = [(k, _unknown_key_reason(k, ())) for k in _LOADER_FIELDS if k in data]
+    data = {k: v for k, v in data.items() if k not in _LOADER_FIELDS}
+    try:
+        scenario = Scenario.model_validate({**data, "text": text, "source": source})
+    except ValidationError as exc:
+        raise ScenarioError(source, reserved + _problems(exc)) from None
+    if reserved:
+        raise ScenarioError(source, reserved)
+    return _resolve_samples(scenario)
+
+
+def _resolve_samples(scenario: Scenario) -> Scenario:
+    """Make shear `sample` paths absolute (relative to the scenario file) and check they exist."""
+    base = Path.cwd() if scenario.source.startswith("<") else Path(scenario.source).parent
+    stages, missing = [], []
+    for k, stage in enumerate(scenario.stages):
+        if isinstance(stage, ShearStage) and stage.sample:
+            path = (base / stage.sample).resolve()
+            if not path.is_file():
+                missing.append((f"stage[{k + 1}].sample", f"no such sample file: {path}"))
+            stage = stage.model_copy(update={"sample": str(path)})
+        stages.append(stage)
+    if missing:
+        raise ScenarioNotFoundError(scenario.source, missing)
+    return scenario.model_copy(update={"stages": tuple(stages)})
+
+
+def _validate(model, data: dict, source: str, *, prefix: str = ""):
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        problems = [(f"{prefix}.{k}" if prefix and k else (k or prefix), r)
+                    for k, r in _problems(exc)]
+        raise ScenarioError(source, problems) from None
+
+
+# --- pydantic errors -> (key, reason) ----------------------------------------------------------
+_SECTIONS = {"backend": BackendConfig, "solver": SolverConfig, "material": MaterialConfig,
+             "bond": BondConfig, "output": OutputConfig}
+_EXPECTED = {"float_type": "a number", "int_type": "an integer", "int_from_float": "an integer",
+             "string_type": "a string", "bool_type": "a boolean", "tuple_type": "an array",
+             "list_type": "an array", "model_type": "a table", "dict_type": "a table",
+             "model_attributes_type": "a table"}
+
+
+def _toml_type(value) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    return {int: "an integer", float: "a float", str: "a string", tuple: "an array",
+            list: "an array", dict: "a table"}.get(type(value), f"a {type(value).__name__}")
+
+
+def _shown(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _key(loc) -> str:
+    """('stage', 0, 'prepare', 'courses', 1) -> 'stage[1].courses[2]' (tags dropped)."""
+    out = ""
+    after_stage_index = False
+    for item in loc:
+        if isinstance(item, int):
+            out += f"[{item + 1}]"
+            after_stage_index = out.endswith("]") and out.rsplit("[", 1)[0] == "stage"
+            continue
+        if after_stage_index and item in STAGE_KINDS:    # discriminated-union tag in the path
+            after_stage_index = False
+            continue
+        after_stage_index = False
+        out = f"{out}.{item}" if out else str(item)
+    return out
+
+
+def _keys_at(loc) -> list[str]:
+    """The keys allowed in the table at `loc` (for 'did you mean' hints)."""
+    if not loc:
+        model = Scenario
+    elif len(loc) == 1 and loc[0] in _SECTIONS:
+        model = _SECTIONS[loc[0]]
+    elif len(loc) == 3 and loc[0] == "stage" and loc[2] in _STAGE_MODELS:
+        model = _STAGE_MODELS[loc[2]]
+    else:
+        return []
+    return [f.alias or name for name, f in model.model_fields.items()
+            if name not in _LOADER_FIELDS]
+
+
+def _unknown_key_reason(name, parent_loc) -> str:
+    allowed = _keys_at(parent_loc)
+    close = difflib.get_close_matches(str(name), allowed, n=1)
+    if close:
+        return f"unknown key (did you mean '{close[0]}'?)"
+    return f"unknown key (expected one of: {', '.join(allowed)})" if allowed else "unknown key"
+
+
+def _problems(exc: ValidationError) -> list[tuple[str, str]]:
+    out = []
+    errors = exc.errors()
+    for err in errors:
+        loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
+        ctx = err.get("ctx") or {}
+        key = _key(loc)
+        if kind == "too_short" and any(len(e["loc"]) > len(loc) and tuple(e["loc"][:len(loc)])
+                                       == loc for e in errors):
+            continue    # pydantic counts only the items that validated: the items' errors say it
+        if kind == "value_error" and isinstance(ctx.get("error"), _Problems):
+            for sub, reason in ctx["error"].problems:
+                out.append((f"{key}.{sub}" if key else sub, reason))
+            continue
+        if kind == "extra_forbidden":
+            reason = _unknown_key_reason(loc[-1], loc[:-1])
+        elif kind == "missing":
+            reason = ("required value missing (at least one [[stage]] table)"
+                      if loc == ("stage",) else "required value missing")
+        elif kind == "union_tag_not_found":
+            key, reason = f"{key}.kind", ("required value missing (the stage kind: "
+                                          "'prepare' or 'shear')")
+        elif kind == "union_tag_invalid":
+            key, reason = f"{key}.kind", (f"unknown stage kind {ctx.get('tag')!r} (expected "
+                                          f"'prepare' or 'shear')")
+        elif loc == ("stage",) and kind == "tuple_type":
+            reason = (f"wrong type: expected an array of tables ([[stage]]), got "
+                      f"{_toml_type(value)}")
+        elif kind in _EXPECTED:
+            reason = (f"wrong type: expected {_EXPECTED[kind]}, got {_toml_type(value)} "
+                      f"{_shown(value)}")
+        elif kind == "string_pattern_mismatch":
+            reason = (f"must contain only letters, digits, '_', '.' and '-', got "
+                      f"{_shown(value)}")
+        elif kind == "too_short":
+            reason = "must not be empty"
+        elif kind == "too_long":
+            reason = f"must have at most {ctx.get('max_length')} items, got {len(value)}"
+        elif kind == "value_error":
+            reason = str(ctx.get("error", err["msg"]))
+        else:    # bounds, literals, finiteness: pydantic's wording, with the value
+            reason = f"{err['msg'].replace('Input should be', 'must be')}, got {_shown(value)}"
+        out.append((key, reason))
+    return out

@@ -1,0 +1,247 @@
+"""The `tcd` command: exit codes, messages, refusal to overwrite, arguments handed to the
+modules that do the work (stubbed here: no simulation runs)."""
+import json
+import pathlib
+import subprocess
+import sys
+import types
+
+import pytest
+
+import tcd
+from tcd.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+SCENARIO = """\
+name = "cli-test"
+
+[[stage]]
+kind = "prepare"
+particles_per_layer = 10
+
+[[stage]]
+kind = "shear"
+"""
+
+
+@pytest.fixture
+def scenario_file(tmp_path):
+    path = tmp_path / "cli.toml"
+    path.write_text(SCENARIO)
+    return path
+
+
+@pytest.fixture
+def stub(monkeypatch):
+    """stub("runner", run_scenario=f): `tcd.runner` is a fake module for this test."""
+    def install(name, **attrs):
+        module = types.ModuleType(f"tcd.{name}")
+        module.__dict__.update(attrs)
+        monkeypatch.setitem(sys.modules, f"tcd.{name}", module)
+        monkeypatch.setattr(tcd, name, module, raising=False)
+        return module
+    return install
+
+
+@pytest.fixture
+def runner_calls(stub):
+    calls = []
+
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
+        calls.append(dict(scenario=scenario, out_dir=out_dir, resume=resume, progress=progress))
+        return {"scenario": scenario.name, "tau_peak_MPa": 0.8371234567}
+    stub("runner", run_scenario=run_scenario)
+    return calls
+
+
+def test_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"tcd {tcd.__version__}"
+
+
+def test_unknown_subcommand_and_bad_flag_exit_2(capsys):
+    assert main(["explode"]) == 2
+    assert main(["run"]) == 2                   # missing SCENARIO
+    assert main(["run", "x.toml", "--arch", "tpu"]) == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_run_missing_scenario(tmp_path, capsys, runner_calls):
+    missing = tmp_path / "missing.toml"
+    assert main(["run", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: ") and str(missing) in err and "no such" in err
+    assert runner_calls == []
+
+
+def test_run_bad_scenario_names_the_key(tmp_path, capsys, runner_calls):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENARIO + "[solver]\ntime_step = -1\n")
+    assert main(["run", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: ")
+    assert f"{bad}: solver.time_step: must be greater than 0" in err
+    assert "Traceback" not in err and runner_calls == []
+
+
+def test_run_passes_scenario_overrides_and_default_out_dir(scenario_file, tmp_path, monkeypatch,
+                                                           capsys, runner_calls):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(scenario_file), "--arch", "gpu", "--precision", "f32"]) == 0
+    (call,) = runner_calls
+    assert call["scenario"].name == "cli-test"
+    assert (call["scenario"].backend.arch, call["scenario"].backend.precision) == ("gpu", "f32")
+    assert str(call["out_dir"]) == "runs/cli-test"
+    assert call["resume"] is False and call["progress"] is True
+    out = capsys.readouterr().out
+    assert "runs/cli-test" in out and "0.837123" in out
+
+
+def test_run_refuses_to_overwrite_results(scenario_file, tmp_path, capsys, runner_calls):
+    out_dir = tmp_path / "done"
+    out_dir.mkdir()
+    (out_dir / "summary.json").write_text("{}")
+    assert main(["run", str(scenario_file), "--out", str(out_dir)]) == 2
+    err = capsys.readouterr().err
+    assert "summary.json" in err and "--resume" in err and "--out" in err
+    assert runner_calls == []
+    assert (out_dir / "summary.json").read_text() == "{}"
+
+
+def test_run_refuses_a_directory_with_a_checkpoint(scenario_file, tmp_path, capsys, runner_calls):
+    out_dir = tmp_path / "half"
+    (out_dir / "sample_1").mkdir(parents=True)
+    (out_dir / "sample_1" / "checkpoint.h5").write_bytes(b"")
+    assert main(["run", str(scenario_file), "--out", str(out_dir)]) == 2
+    assert "checkpoint.h5" in capsys.readouterr().err and runner_calls == []
+
+
+def test_run_into_an_empty_existing_directory_is_fine(scenario_file, tmp_path, runner_calls):
+    out_dir = tmp_path / "empty"
+    out_dir.mkdir()
+    assert main(["run", str(scenario_file), "--out", str(out_dir)]) == 0
+    assert runner_calls[0]["out_dir"] == out_dir
+
+
+def test_resume_is_passed_to_the_runner(scenario_file, tmp_path, runner_calls):
+    out_dir = tmp_path / "half"
+    out_dir.mkdir()
+    (out_dir / "summary.json").write_text("{}")
+    assert main(["run", str(scenario_file), "--out", str(out_dir), "--resume"]) == 0
+    assert runner_calls[0]["resume"] is True
+
+
+def test_resume_without_a_run_directory(scenario_file, tmp_path, capsys, runner_calls):
+    assert main(["run", str(scenario_file), "--out", str(tmp_path / "none"), "--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err and runner_calls == []
+
+
+def test_resume_without_checkpoint_reports_the_runner_message(scenario_file, tmp_path, capsys,
+                                                              stub):
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
+        raise FileNotFoundError(f"{out_dir}: nothing to resume (no checkpoint found)")
+    stub("runner", run_scenario=run_scenario)
+    (tmp_path / "empty").mkdir()
+    assert main(["run", str(scenario_file), "--out", str(tmp_path / "empty"), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: ") and "no checkpoint found" in err
+
+
+def test_interrupted_run_says_how_to_resume(scenario_file, tmp_path, capsys, stub):
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
+        raise KeyboardInterrupt
+    stub("runner", run_scenario=run_scenario)
+    out_dir = tmp_path / "run"
+    assert main(["run", str(scenario_file), "--out", str(out_dir), "--arch", "cpu"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted; resume with: tcd run" in err
+    assert f"--out {out_dir}" in err and "--arch cpu" in err and err.rstrip().endswith("--resume")
+
+
+def test_info_missing_file(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "missing.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: ") and "missing.h5" in err
+
+
+def test_info_not_hdf5(tmp_path, capsys):
+    path = tmp_path / "notes.h5"
+    path.write_text("not hdf5")
+    assert main(["info", str(path)]) == 2
+    assert "notes.h5" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["pour", "--particles", "300", "--time", "0.1"],
+     ("pour", dict(particles=300, time=0.1, arch="cpu", precision="f64", tolerance=1e-4, seed=1))),
+    (["shear", "--precision", "f32", "--seed", "7", "--tolerance", "1e-3"],
+     ("shear", dict(particles=5200, arch="cpu", precision="f32", tolerance=1e-3, seed=7))),
+    (["scaling", "--sizes", "100,200", "--steps", "5", "--out", "x"],
+     ("scaling", dict(sizes=[100, 200], steps=5, arch="cpu", precision="f64", tolerance=1e-4,
+                      out="x"))),
+])
+def test_bench_passes_keyword_options(argv, expected, stub, capsys):
+    calls = []
+
+    def recorder(name):
+        def bench(**kwargs):
+            calls.append((name, kwargs))
+            return {"benchmark": name, "seconds_per_particle_step": 1.25e-6, "bed": {"top": 0.1}}
+        return bench
+    stub("bench", pour=recorder("pour"), shear=recorder("shear"), scaling=recorder("scaling"))
+    assert main(["bench"] + argv + ["--json"]) == 0
+    assert calls == [expected]
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["benchmark"] == expected[0] and printed["bed"]["top"] == 0.1
+    assert main(["bench"] + argv) == 0          # table form: one dotted key per line
+    table = capsys.readouterr().out
+    assert "seconds_per_particle_step  1.25e-06" in table and "bed.top" in table
+
+
+def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backend, monkeypatch):
+    arch, precision = backend
+    states = tmp_path / "states.h5"
+    states.write_bytes(b"")
+    calls = []
+    stub("render", render_file=lambda path, out, **kw: calls.append((path, out, kw)))
+    inits = []
+    monkeypatch.setattr(tcd, "init", lambda a, p: inits.append((a, p)))
+    assert main(["render", str(states), "--out", str(tmp_path / "a.gif"), "--frames", "0,2",
+                 "--color", "speed", "--section", "xz", "--camera", "front", "--width", "64",
+                 "--height", "48", "--arch", arch, "--precision", precision]) == 0
+    assert inits == [(arch, precision)]
+    (path, out, kw) = calls[0]
+    assert str(path) == str(states) and str(out) == str(tmp_path / "a.gif")
+    assert kw == dict(frame=-1, frames=[0, 2], color="speed", section="xz", camera="front",
+                      width=64, height=48, fps=10.0)
+
+
+def test_figures_prints_written_files(tmp_path, stub, capsys):
+    stub("figures", make_figures=lambda run_dir, out_dir=None: [tmp_path / "fig1.png"])
+    assert main(["figures", str(tmp_path)]) == 0
+    assert str(tmp_path / "fig1.png") in capsys.readouterr().out
+    assert main(["figures", str(tmp_path / "nope")]) == 2
+
+
+def test_view_without_display_exits_2(tmp_path, stub, capsys):
+    def view(path, **kw):
+        raise RuntimeError("the interactive viewer needs a display")
+    stub("viewer", view=view)
+    states = tmp_path / "states.h5"
+    states.write_bytes(b"")
+    assert main(["view", str(states)]) == 2
+    assert "needs a display" in capsys.readouterr().err
+
+
+def test_cli_and_config_import_no_heavy_module():
+    heavy = ("tcd.runner", "tcd.render", "tcd.simulation", "tcd.viewer", "tcd.bench",
+             "tcd.figures", "pydantic")
+    code = ("import sys\n"
+            "def loaded(): return ','.join(m for m in %r if m in sys.modules)\n"
+            "import tcd.cli; print(loaded())\n"
+            "import tcd.config; print(loaded())\n" % (heavy,))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT).stdout.splitlines()
+    assert out[-2] == ""                 # the command's module: nothing until a handler runs
+    assert out[-1] == "pydantic"         # the configuration: pydantic, not the solver

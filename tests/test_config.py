@@ -1,0 +1,376 @@
+"""Scenario parsing: typed values and defaults, and one refusal per kind of bad input, each
+naming the file, the key and the reason."""
+import pathlib
+import re
+
+import pydantic
+import pytest
+
+from tcd.config import (BackendConfig, PrepareStage, Scenario, ScenarioError, ShearStage,
+                        load_scenario, parse_scenario)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+FULL = """\
+name = "leutner-full"
+description = "every key set"
+seeds = [3, 1, 4]
+
+[backend]
+arch = "gpu"
+precision = "f32"
+
+[solver]
+time_step = 1e-4
+theta = 0.75
+tolerance = 1e-5
+max_sweeps = 500
+check_every = 5
+schedule = "coloured"
+alert_ratio = 0.2
+gravity = 9.8
+
+[material]
+density = 2500
+friction = 0.6
+wall_friction = 0.1
+
+[bond]
+mode = "burgers"
+maxwell_stiffness = 3e6
+maxwell_viscosity = 4e7
+kelvin_stiffness = 5e6
+kelvin_viscosity = 6e7
+poisson_ratio = 0.25
+yield_stress_MPa = 1.5
+gap_tolerance_mm = 0.02
+friction_after_break = 0.5
+
+[output]
+snapshot_every = 0.1
+checkpoint_every_s = 30
+series_every = 2
+
+[[stage]]
+kind = "prepare"
+cylinder_diameter_mm = 100.0
+layer_height_mm = 40.0
+packing_fraction = 0.6
+courses = ["binder", "surface", "surface"]
+particles_per_layer = 500
+size_scale = 0.5
+column_height_mm = 800.0
+lattice_jitter_mm = 0.1
+settle_speed = 0.01
+max_settle_time = 2.0
+vibration_amplitude_mm = 3.0
+vibration_frequency = 25.0
+vibration_duration = 0.5
+sample_height_mm = 110.0
+
+[[stage]]
+kind = "shear"
+displacement_mm = 2.0
+velocity_mm_per_min = 60.0
+ring_height_mm = 55.0
+gap_mm = 2.0
+wall_friction = 0.2
+smoothing_window_mm = 0.2
+bond_mode = "paper"
+"""
+
+MINIMAL = """\
+name = "tiny"
+
+[[stage]]
+kind = "prepare"
+
+[[stage]]
+kind = "shear"
+"""
+
+
+def write(tmp_path, text, name="scenario.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def refusal(tmp_path, text) -> ScenarioError:
+    """The ScenarioError for `text` loaded from a file (so the message must name it)."""
+    path = write(tmp_path, text)
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(path)
+    return info.value
+
+
+def assert_names(error: ScenarioError, key: str, *reason_words: str) -> str:
+    """One line of the message is `FILE: KEY: reason` with all `reason_words` in the reason."""
+    for line in str(error).splitlines():
+        head = f"{error.source}: {key}: "
+        if line.startswith(head) and all(w in line[len(head):] for w in reason_words):
+            return line
+    raise AssertionError(f"no line `{error.source}: {key}: ...{reason_words}` in:\n{error}")
+
+
+# --- valid input -------------------------------------------------------------------------------
+def test_full_scenario_parses_into_typed_values(tmp_path):
+    path = write(tmp_path, FULL)
+    s = load_scenario(path)
+    assert s.name == "leutner-full" and s.description == "every key set"
+    assert s.seeds == (3, 1, 4)
+    assert (s.backend.arch, s.backend.precision) == ("gpu", "f32")
+    assert s.solver.time_step == 1e-4 and s.solver.theta == 0.75 and s.solver.tolerance == 1e-5
+    assert s.solver.max_sweeps == 500 and isinstance(s.solver.max_sweeps, int)
+    assert (s.solver.check_every, s.solver.schedule) == (5, "coloured")
+    assert (s.solver.alert_ratio, s.solver.gravity) == (0.2, 9.8)
+    assert s.material.density == 2500.0 and isinstance(s.material.density, float)
+    assert (s.material.friction, s.material.wall_friction) == (0.6, 0.1)
+    assert s.bond.mode == "burgers" and s.bond.poisson_ratio == 0.25
+    assert s.bond.yield_stress == pytest.approx(1.5e6)
+    assert s.bond.gap_tolerance == pytest.approx(2e-5)
+    out = s.output
+    assert (out.snapshot_every, out.checkpoint_every_s, out.series_every) == (0.1, 30.0, 2)
+    prep, shear = s.stages
+    assert isinstance(prep, PrepareStage) and isinstance(shear, ShearStage)
+    assert prep.courses == ("binder", "surface", "surface")
+    assert prep.cylinder_diameter == pytest.approx(0.1)
+    assert prep.particles_per_layer == 500 and prep.layer_particle_count("binder") == 500
+    assert prep.sample_height_mm == 110.0 and prep.vibration_frequency == 25.0
+    assert shear.bond_mode == "paper" and shear.gap == pytest.approx(2e-3)
+    assert shear.velocity == pytest.approx(1e-3)                  # 60 mm/min = 1 mm/s
+    assert shear.duration == pytest.approx(2.0)
+    assert s.text == FULL and s.source == str(path)
+
+
+def test_defaults_fill_everything_not_given():
+    s = parse_scenario(MINIMAL)
+    assert s.source == "<string>" and s.description == "" and s.seeds == (1,)
+    assert s.backend == BackendConfig(arch="cpu", precision="f64")
+    assert s.solver.time_step == 2e-4 and s.solver.max_sweeps == 1000 and s.solver.gravity == 9.81
+    assert s.material.density == 2600.0 and s.material.friction == 0.7
+    assert s.bond.mode == "paper" and s.bond.yield_stress_MPa == 2.7
+    assert s.output.snapshot_every == 0.05
+    prep, shear = s.stages
+    assert prep.courses == ("binder", "surface") and prep.cylinder_diameter_mm == 150.0
+    assert prep.packing_fraction == 0.587 and prep.sample_height_mm == 120.0
+    assert shear.displacement_mm == 2.5 and shear.velocity_mm_per_min == 50.0
+    assert shear.bond_mode is None and shear.sample == ""
+    # from the packing fraction: pi/4 (0.15 m)^2 0.06 m 0.587 / mean binder sphere volume
+    assert prep.layer_particle_count("binder") == 1675
+
+
+def test_particle_count_scales_with_size_scale_cubed():
+    base = parse_scenario(MINIMAL).stages[0].layer_particle_count("surface")
+    half = parse_scenario(MINIMAL.replace('kind = "prepare"',
+                                          'kind = "prepare"\nsize_scale = 0.5')).stages[0]
+    assert half.layer_particle_count("surface") == pytest.approx(8 * base, rel=1e-3)
+
+
+def test_scenario_is_frozen():
+    s = parse_scenario(MINIMAL)
+    with pytest.raises(pydantic.ValidationError):
+        s.name = "other"
+    with pytest.raises(pydantic.ValidationError):
+        s.solver.time_step = 1.0
+    with pytest.raises(pydantic.ValidationError):
+        s.stages[0].size_scale = 2.0
+    assert isinstance(s.stages, tuple) and isinstance(s.stages[0].courses, tuple)
+
+
+def test_with_overrides_replaces_only_the_backend():
+    s = parse_scenario(MINIMAL)
+    gpu = s.with_overrides(arch="gpu")
+    assert (gpu.backend.arch, gpu.backend.precision) == ("gpu", "f64")
+    f32 = s.with_overrides(precision="f32")
+    assert (f32.backend.arch, f32.backend.precision) == ("cpu", "f32")
+    assert s.backend.arch == "cpu"                      # the original is untouched
+    assert gpu.stages == s.stages and gpu.text == s.text and gpu.solver == s.solver
+    assert s.with_overrides() is s
+    with pytest.raises(ScenarioError, match=r"backend\.arch: must be 'cpu' or 'gpu', got 'tpu'"):
+        s.with_overrides(arch="tpu")
+
+
+def test_to_settings_and_to_law_carry_the_values():
+    s = parse_scenario(FULL)
+    st = s.solver.to_settings()
+    assert (st.time_step, st.theta, st.tolerance, st.max_sweeps, st.check_every) == \
+        (1e-4, 0.75, 1e-5, 500, 5)
+    assert (st.schedule, st.alert_ratio) == ("coloured", 0.2)
+    assert tuple(st.gravity) == (0.0, 0.0, -9.8)
+    law = s.bond.to_law()
+    assert law.mode == "burgers"
+    assert (law.maxwell_stiffness, law.maxwell_viscosity) == (3e6, 4e7)
+    assert (law.kelvin_stiffness, law.kelvin_viscosity) == (5e6, 6e7)
+    assert law.poisson_ratio == 0.25 and law.friction_after_break == 0.5
+    assert law.yield_stress == pytest.approx(1.5e6)     # MPa -> Pa
+    assert s.bond.to_law(s.stages[1].bond_mode).mode == "paper"
+
+
+# --- refusals ----------------------------------------------------------------------------------
+def test_unknown_top_level_key(tmp_path):
+    err = refusal(tmp_path, "sedes = [1]\n" + MINIMAL)
+    assert_names(err, "sedes", "unknown key", "seeds")
+
+
+def test_unknown_key_inside_a_stage(tmp_path):
+    err = refusal(tmp_path, MINIMAL + "ring_heigth_mm = 60\n")
+    assert_names(err, "stage[2].ring_heigth_mm", "unknown key", "ring_height_mm")
+
+
+def test_unknown_key_inside_a_section(tmp_path):
+    err = refusal(tmp_path, MINIMAL + "[solver]\ntimestep = 1e-4\n")
+    assert_names(err, "solver.timestep", "unknown key", "time_step")
+
+
+def test_loader_fields_are_not_keys(tmp_path):
+    err = refusal(tmp_path, 'text = "x"\n' + MINIMAL)
+    assert_names(err, "text", "unknown key")
+
+
+def test_wrong_type_is_not_coerced(tmp_path):
+    err = refusal(tmp_path, MINIMAL + '[solver]\ntime_step = "2e-4"\nmax_sweeps = 10.5\n')
+    assert_names(err, "solver.time_step", "wrong type", "number", "string")
+    assert_names(err, "solver.max_sweeps", "wrong type", "integer", "float")
+
+
+def test_stage_table_instead_of_array_of_tables(tmp_path):
+    err = refusal(tmp_path, 'name = "x"\n[stage]\nkind = "prepare"\n')
+    assert_names(err, "stage", "wrong type", "[[stage]]")
+
+
+def test_missing_name(tmp_path):
+    err = refusal(tmp_path, MINIMAL.replace('name = "tiny"\n', ""))
+    assert_names(err, "name", "required value missing")
+
+
+def test_missing_stage_kind(tmp_path):
+    err = refusal(tmp_path, MINIMAL + "[[stage]]\ngap_mm = 1.0\n")
+    assert_names(err, "stage[3].kind", "required value missing", "prepare", "shear")
+
+
+def test_missing_stages(tmp_path):
+    err = refusal(tmp_path, 'name = "x"\n')
+    assert_names(err, "stage", "required value missing")
+
+
+def test_unknown_stage_kind(tmp_path):
+    err = refusal(tmp_path, MINIMAL + '[[stage]]\nkind = "compact"\n')
+    assert_names(err, "stage[3].kind", "unknown stage kind", "'compact'")
+
+
+def test_negative_size(tmp_path):
+    err = refusal(tmp_path, MINIMAL.replace('kind = "prepare"',
+                                            'kind = "prepare"\ncylinder_diameter_mm = -150'))
+    assert_names(err, "stage[1].cylinder_diameter_mm", "greater than 0", "-150")
+
+
+@pytest.mark.parametrize("value", ["0", "-2e-4", "0.0", "nan", "inf"])
+def test_time_step_must_be_positive_and_finite(tmp_path, value):
+    err = refusal(tmp_path, MINIMAL + f"[solver]\ntime_step = {value}\n")
+    assert_names(err, "solver.time_step", "must be")
+
+
+def test_particles_larger_than_the_cylinder(tmp_path):
+    # 16 mm spheres x 2 = 32 mm in a 30 mm cylinder
+    err = refusal(tmp_path, MINIMAL.replace(
+        'kind = "prepare"', 'kind = "prepare"\ncylinder_diameter_mm = 30\nsize_scale = 2.0'))
+    assert_names(err, "stage[1].cylinder_diameter_mm", "larger than the cylinder", "32 mm")
+
+
+def test_shear_gap_larger_than_ring_height(tmp_path):
+    err = refusal(tmp_path, MINIMAL + "ring_height_mm = 60\ngap_mm = 61\n")
+    assert_names(err, "stage[2].gap_mm", "smaller than ring_height_mm")
+
+
+def test_sample_shorter_than_its_layers(tmp_path):
+    # two 60 mm courses cannot be confined to 100 mm (< 0.9 x 120 mm)
+    err = refusal(tmp_path, MINIMAL.replace(
+        'kind = "prepare"', 'kind = "prepare"\nsample_height_mm = 100'))
+    assert_names(err, "stage[1].sample_height_mm", "108 mm")
+
+
+def test_column_too_short_for_the_particles(tmp_path):
+    err = refusal(tmp_path, MINIMAL.replace(
+        'kind = "prepare"', 'kind = "prepare"\ncolumn_height_mm = 100'))
+    assert_names(err, "stage[1].column_height_mm", "does not fit", "binder")
+
+
+def test_shear_needs_a_prepared_sample(tmp_path):
+    err = refusal(tmp_path, 'name = "x"\n[[stage]]\nkind = "shear"\n')
+    assert_names(err, "stage[1].sample", "preceding prepare stage")
+
+
+def test_shear_sample_path_is_resolved_and_must_exist(tmp_path):
+    (tmp_path / "prep").mkdir()
+    (tmp_path / "prep" / "prepared.h5").write_bytes(b"")
+    text = 'name = "x"\n[[stage]]\nkind = "shear"\nsample = "prep/prepared.h5"\n'
+    s = load_scenario(write(tmp_path, text))
+    assert pathlib.Path(s.stages[0].sample) == (tmp_path / "prep" / "prepared.h5").resolve()
+    err = refusal(tmp_path, text.replace("prepared.h5", "missing.h5"))
+    assert isinstance(err, FileNotFoundError)
+    assert_names(err, "stage[1].sample", "no such sample file")
+
+
+def test_duplicate_seeds_and_bad_seed(tmp_path):
+    err = refusal(tmp_path, "seeds = [1, 2, 1, -3]\n" + MINIMAL)
+    assert_names(err, "seeds[4]", "greater than or equal to 0", "-3")
+    err = refusal(tmp_path, "seeds = [1, 2, 1]\n" + MINIMAL)
+    assert_names(err, "seeds[3]", "duplicate seed 1")
+
+
+def test_bad_name(tmp_path):
+    err = refusal(tmp_path, MINIMAL.replace('"tiny"', '"my run/1"'))
+    assert_names(err, "name", "letters, digits")
+
+
+def test_all_problems_are_listed_one_per_line(tmp_path):
+    err = refusal(tmp_path,
+                  MINIMAL + 'foo = 1\n[solver]\ntime_step = -1\n[backend]\narch = "tpu"\n')
+    lines = str(err).splitlines()
+    assert len(lines) == 3 and len(err.problems) == 3
+    assert all(line.startswith(f"{tmp_path / 'scenario.toml'}: ") for line in lines)
+    assert {k for k, _ in err.problems} == {"stage[2].foo", "solver.time_step", "backend.arch"}
+
+
+def test_malformed_toml_reports_line_and_column(tmp_path):
+    err = refusal(tmp_path, 'name = "x"\n\n[solver]\ntime_step = \n')
+    assert_names(err, "line 4, column 13", "malformed TOML")
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.toml"
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(path)
+    assert isinstance(info.value, FileNotFoundError)
+    assert str(path) in str(info.value) and "no such scenario file" in str(info.value)
+
+
+def test_refusal_happens_at_parse_time_without_simulation():
+    with pytest.raises(ValueError):          # ScenarioError is a ValueError
+        parse_scenario(MINIMAL + "[solver]\ntime_step = 0\n")
+
+
+# --- files in the repository -------------------------------------------------------------------
+SCENARIO_FILES = sorted((ROOT / "scenarios").glob("*.toml"))
+
+
+@pytest.mark.skipif(not SCENARIO_FILES, reason="no scenarios/*.toml yet")
+@pytest.mark.parametrize("path", SCENARIO_FILES, ids=lambda p: p.name)
+def test_repository_scenarios_parse(path):
+    s = load_scenario(path)
+    assert s.name and s.stages
+
+
+def test_examples_in_the_documentation_parse():
+    doc = ROOT / "docs" / "scenarios.md"
+    blocks = re.findall(r"```toml\n(.*?)```", doc.read_text(), flags=re.S)
+    assert blocks, "docs/scenarios.md has no ```toml example"
+    for block in blocks:
+        try:
+            s = parse_scenario(block, str(doc))
+        except ScenarioError as err:   # an example may shear a sample another run makes
+            assert all(k.endswith(".sample") and "no such sample file" in r
+                       for k, r in err.problems), str(err)
+            continue
+        assert s.name and s.stages

@@ -1,0 +1,241 @@
+"""tcd.figures: smoothing, peak detection, Table 2 and the headless outputs of a run directory."""
+import json
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from tcd import io
+from tcd.figures import (FigureWarning, make_figures, peak_of, render_frames, smooth,
+                         table2_rows)
+
+pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+              pytest.mark.filterwarnings("ignore:.*summary.json missing:UserWarning"),
+              pytest.mark.filterwarnings("ignore:.*no sample has a states.h5:UserWarning")]
+
+
+# --- smooth ----------------------------------------------------------------------------------
+def test_smooth_of_constant_is_the_constant():
+    x = np.sort(np.random.default_rng(0).uniform(0.0, 1.0, 200))
+    np.testing.assert_allclose(smooth(np.full(200, 3.25), x, 0.1), 3.25, rtol=1e-14)
+
+
+def test_smooth_reduces_variance_of_noise():
+    rng = np.random.default_rng(1)
+    x = np.linspace(0.0, 1.0, 2001)
+    y = rng.normal(0.0, 1.0, x.size)
+    s = smooth(y, x, 0.05)  # about 100 points per window -> variance / 100
+    assert np.var(s) < 0.05 * np.var(y)
+
+
+def test_smooth_window_is_in_x_units_on_nonuniform_x():
+    # dense on the left, sparse on the right: the window counts x distance, not points
+    x = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 1.0, 2.0, 3.0])
+    y = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0])
+    s = smooth(y, x, 0.5)  # |x_j - x_i| <= 0.25
+    assert s[2] == pytest.approx(np.mean([2.0, 3.0, 4.0]))       # 0.1, 0.2, 0.3
+    assert s[0] == pytest.approx(np.mean([1.0, 2.0, 3.0]))       # edge: 0, 0.1, 0.2 only
+    assert s[5] == pytest.approx(6.0)                             # isolated point
+    s_wide = smooth(y, x, 2.2)  # |dx| <= 1.1
+    assert s_wide[6] == pytest.approx(np.mean([6.0, 7.0, 8.0]))
+    # order of the samples does not matter
+    perm = np.random.default_rng(2).permutation(x.size)
+    np.testing.assert_allclose(smooth(y[perm], x[perm], 0.5), s[perm])
+
+
+# --- peak_of ---------------------------------------------------------------------------------
+def test_peak_of_finds_the_peak_of_a_noisy_bump():
+    rng = np.random.default_rng(3)
+    d = np.linspace(0.0, 2.5e-3, 15000)
+    true_d, true_tau = 2.2e-3, 0.84e6
+    tau = true_tau * np.exp(-0.5 * ((d - true_d) / 0.4e-3) ** 2)
+    noisy = tau + rng.normal(0.0, 0.05e6, d.size)
+    noisy[6000] += 0.6e6                            # one-step spike at 1 mm: not the peak
+    window = 5e-5
+    tau_peak, d_peak, index = peak_of(d, noisy, window)
+    assert abs(d_peak - true_d) < 2 * window
+    assert tau_peak == pytest.approx(true_tau, rel=0.01)
+    assert d[index] == d_peak
+    assert tau_peak == pytest.approx(smooth(noisy, d, window)[index])
+    # raw noise would overshoot: the smoothed peak is what is reported
+    assert noisy.max() > true_tau + 0.1e6
+
+
+def test_peak_of_monotonic_curve_is_the_last_point():
+    d = np.linspace(0.0, 1.0, 500) ** 1.5          # non-uniform, increasing
+    tau = 1.0 - np.exp(-3.0 * d)                    # concave, increasing
+    tau_peak, d_peak, index = peak_of(d, tau, 0.05)
+    assert index == d.size - 1
+    assert d_peak == d[-1]
+    assert tau_peak <= tau[-1]
+    # a curve that saturates exactly: equal smoothed maxima, the last one is reported
+    x = np.linspace(0.0, 1.0, 101)
+    assert peak_of(x, np.minimum(x, 0.5), 0.1)[2] == 100
+
+
+# --- Table 2 ---------------------------------------------------------------------------------
+def _summary(taus=(0.80, 0.86, 0.83), ds=(2.1, 2.3, 2.2)):
+    samples = [{"seed": s, "tau_peak_MPa": t, "d_peak_mm": d, "bonds_total": 2000}
+               for s, t, d in zip((11, 12, 13), taus, ds)]
+    return {"scenario": "synthetic", "samples": samples,
+            "mean": {"tau_peak_MPa": float(np.mean(taus)), "d_peak_mm": float(np.mean(ds)),
+                     "residual_MPa": 0.3},
+            "std": {"tau_peak_MPa": float(np.std(taus, ddof=1)),
+                    "d_peak_mm": float(np.std(ds, ddof=1)), "residual_MPa": 0.01},
+            "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
+            "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}}
+
+
+def test_table2_rows_values_and_relative_errors():
+    rows = table2_rows(_summary())
+    assert [r["label"] for r in rows][:2] == ["experiments", "paper simulations (LMGC90)"]
+    assert "3 samples" in rows[2]["label"]
+    exp, paper, run = rows
+    assert (exp["tau_MPa"], exp["d_mm"]) == (0.898, 2.37)
+    assert math.isnan(exp["tau_rel_error"]) and math.isnan(exp["d_rel_error"])
+    assert paper["tau_rel_error"] == pytest.approx((0.837 - 0.898) / 0.898)
+    assert paper["d_rel_error"] == pytest.approx((2.2 - 2.37) / 2.37)
+    assert run["tau_MPa"] == pytest.approx(0.83)
+    assert run["d_mm"] == pytest.approx(2.2)
+    assert run["tau_std_MPa"] == pytest.approx(0.03)
+    assert run["n_samples"] == 3
+    assert run["tau_rel_error"] == pytest.approx((0.83 - 0.898) / 0.898)
+    assert run["d_rel_error"] == pytest.approx((2.2 - 2.37) / 2.37)
+
+
+def test_table2_rows_fall_back_to_samples_when_mean_is_missing():
+    summary = _summary(taus=(0.9, 1.0), ds=(2.0, 2.4))
+    del summary["mean"], summary["std"]
+    run = table2_rows(summary)[2]
+    assert run["tau_MPa"] == pytest.approx(0.95)
+    assert run["d_mm"] == pytest.approx(2.2)
+    assert run["d_std_mm"] == pytest.approx(0.2)
+
+
+# --- run directories -------------------------------------------------------------------------
+def _write_sample(run_dir, seed, tau_peak, d_peak, *, attrs=True, n=3000):
+    rng = np.random.default_rng(seed)
+    d = np.linspace(0.0, 2.5e-3, n)
+    rise = tau_peak * np.sin(0.5 * np.pi * np.clip(d / d_peak, 0.0, 1.0)) ** 1.5
+    residual = 0.35e6 + (tau_peak - 0.35e6) * np.exp(-(d - d_peak) / 1e-4)
+    tau = np.where(d <= d_peak, rise, residual) + rng.normal(0.0, 0.02e6, n)
+    total = 2000
+    tension = np.round(800 * np.clip(d / 2.5e-3, 0, 1) ** 3).astype(np.int64)
+    shear = np.round(300 * np.clip((d - 1.5e-3) / 1e-3, 0, 1) ** 2).astype(np.int64)
+    series = {"time": d / (50e-3 / 60.0), "step": np.arange(n), "displacement": d,
+              "shear_force": tau * np.pi * 0.075 ** 2, "shear_stress": tau,
+              "bonds_intact": total - tension - shear, "bonds_broken_tension": tension,
+              "bonds_broken_shear": shear, "sweeps": np.full(n, 50), "residual": np.full(n, 1e-6),
+              "contacts": np.full(n, 5000), "kinetic_energy": np.full(n, 1e-6)}
+    folder = run_dir / f"sample_{seed}"
+    folder.mkdir(parents=True)
+    root = {"tau_peak": tau_peak, "d_peak": d_peak, "smoothing_window": 5e-5} if attrs else {}
+    io.write_series(folder / "shear_series.h5", series, attrs=root,
+                    units={"time": "s", "displacement": "m", "shear_stress": "Pa"})
+
+
+def test_make_figures_writes_the_paper_outputs(tmp_path):
+    run = tmp_path / "run"
+    peaks = {11: (0.80e6, 2.1e-3), 12: (0.86e6, 2.3e-3), 13: (0.83e6, 2.2e-3)}
+    for seed, (t, d) in peaks.items():
+        _write_sample(run, seed, t, d, attrs=(seed != 13))   # seed 13: peaks computed here
+    (run / "summary.json").write_text(json.dumps(_summary()))
+    with pytest.warns(FigureWarning, match="fig2.*fig3.*skipped"):
+        written = make_figures(run)
+    names = sorted(p.name for p in written)
+    assert names == sorted(["fig4_stress_displacement.png", "fig4_stress_displacement.pdf",
+                            "table2.md", "table2.csv", "table2.png", "bonds_broken.png"])
+    for path in written:
+        assert path.parent == run / "figures" and path.stat().st_size > 0
+    assert not list((run / "figures").glob(".*.tmp"))
+    for name in ("fig4_stress_displacement.png", "table2.png", "bonds_broken.png"):
+        image = iio.imread(run / "figures" / name)
+        assert image.ndim == 3 and image.shape[0] >= 250 and image.shape[1] >= 600
+        assert image[..., :3].std() > 5          # not blank
+    md = (run / "figures" / "table2.md").read_text()
+    for text in ("0.898", "2.37", "0.837", "2.20", "0.830 ± 0.030", "-7.6 %", "-7.2 %"):
+        assert text in md
+    csv_lines = (run / "figures" / "table2.csv").read_text().splitlines()
+    assert len(csv_lines) == 4 and csv_lines[0].startswith("label,tau_MPa")
+
+
+def test_make_figures_skips_samples_without_series(tmp_path):
+    run = tmp_path / "run"
+    _write_sample(run, 5, 0.85e6, 2.2e-3)
+    (run / "sample_6").mkdir()                   # still running: no series yet
+    out = tmp_path / "out"
+    with pytest.warns(FigureWarning, match="sample 6 skipped"):
+        written = make_figures(run, out)        # no summary.json: table from the series
+    assert (out / "fig4_stress_displacement.png") in written
+    md = (out / "table2.md").read_text()
+    assert "0.850" in md and "2.20" in md and "1 samples" in md
+
+
+def test_make_figures_without_usable_series_names_the_directory(tmp_path):
+    run = tmp_path / "empty_run"
+    (run / "sample_1").mkdir(parents=True)
+    (run / "summary.json").write_text(json.dumps(_summary()))
+    with pytest.warns(FigureWarning), pytest.raises(ValueError, match="empty_run.*no usable"):
+        make_figures(run)
+    assert not (run / "figures").exists() or not any((run / "figures").iterdir())
+
+
+def test_render_frames_choose_prepared_and_peak_frames():
+    stages = [(0.0, "prepare"), (1.0, "prepare"), (2.0, "shear"), (2.5, "shear"),
+              (3.0, "shear"), (4.0, "shear")]
+    assert render_frames(stages, 2.9) == (1, [2, 4])
+    assert render_frames(stages, math.nan) == (1, [2, 5])
+    assert render_frames([(0.0, "pour"), (1.0, "pour")], 1.0) == (0, [])
+
+
+def _write_states(path, stages):
+    x = np.array([[0.0, 0.0, 0.01], [0.0, 0.0, 0.03]])
+    for k, (time, stage) in enumerate(stages):
+        io.append_frame(path, {"particles/x": x, "particles/radius": np.full(2, 0.01),
+                               "particles/v": np.zeros((2, 3))}, time=time, step=k, stage=stage)
+
+
+def test_make_figures_renders_fig2_and_fig3_at_the_right_frames(tmp_path, monkeypatch):
+    from tcd import render
+    run = tmp_path / "run"
+    _write_sample(run, 7, 0.85e6, 2.2e-3)
+    peak_time = 2.2e-3 / (50e-3 / 60.0)            # 2.64 s at 50 mm/min
+    _write_states(run / "sample_7" / "states.h5",
+                  [(0.0, "prepare"), (0.4, "prepare"), (0.5, "shear"), (1.5, "shear"),
+                   (peak_time + 0.1, "shear"), (3.0, "shear")])
+    calls = {}
+
+    def fake(name):
+        def draw(path, out, frame=None, frames=None):
+            calls[name] = (path, frame if frames is None else list(frames))
+            iio.imwrite(out, np.zeros((8, 8, 3), np.uint8))
+        return draw
+
+    monkeypatch.setattr(render, "figure_sample", fake("fig2"))
+    monkeypatch.setattr(render, "figure_velocity", fake("fig3"))
+    written = make_figures(run)
+    assert calls["fig2"] == (run / "sample_7" / "states.h5", 1)   # last "prepare" frame
+    assert calls["fig3"][1] == [2, 4]                              # first shear, nearest peak
+    assert {"fig2_sample.png", "fig3_velocity.png"} <= {p.name for p in written}
+
+
+def test_a_failing_render_is_skipped_with_a_warning(tmp_path, monkeypatch):
+    from tcd import render
+    run = tmp_path / "run"
+    _write_sample(run, 7, 0.85e6, 2.2e-3)
+    _write_states(run / "sample_7" / "states.h5", [(0.0, "prepare"), (1.0, "shear")])
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no renderer today")
+
+    monkeypatch.setattr(render, "figure_sample", broken)
+    monkeypatch.setattr(render, "figure_velocity", broken)
+    with pytest.warns(FigureWarning) as record:
+        written = make_figures(run)
+    messages = " | ".join(str(w.message) for w in record)
+    assert "fig2_sample.png skipped: RuntimeError: no renderer today" in messages
+    assert "fig3_velocity.png skipped: RuntimeError: no renderer today" in messages
+    names = {p.name for p in written}
+    assert "fig2_sample.png" not in names and "fig3_velocity.png" not in names
+    assert {"fig4_stress_displacement.png", "table2.png", "bonds_broken.png"} <= names
