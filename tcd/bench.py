@@ -88,3 +88,128 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     }
     out.update(bed_metrics(sim))
     return out
+
+
+def _sample_path(particles: int, seed: int):
+    import pathlib
+    return pathlib.Path("runs") / "bench" / f"sample_{particles}_{seed}.h5"
+
+
+def bench_sample(particles: int, seed: int, tolerance: float):
+    """A confined two-layer sample for the shear benchmark, generated once and cached under
+    runs/bench/: a quick pour (looser solver, larger step) of both courses into the 150 mm
+    mould, then a top plate at the bed surface. Good enough to time the shear stage; the
+    paper's preparation protocol is `tcd run scenarios/prepare.toml`."""
+    from . import io
+    from .simulation import Simulation, SolverSettings
+    path = _sample_path(particles, seed)
+    if path.exists():
+        arrays, meta = io.load_checkpoint(path)
+        return arrays
+    rng = np.random.default_rng(seed)
+    half = particles // 2
+    r = np.concatenate([packing.course_radii("binder", half, rng),
+                        packing.course_radii("surface", particles - half, rng)])
+    x = packing.lattice_column(r, 2 * CYLINDER_RADIUS, 0.0, rng, max_height=max(1.6, 1e-4 * particles))
+    layer = np.r_[np.zeros(half, np.int32), np.ones(particles - half, np.int32)]
+    top = float(x[:, 2].max() + r.max())
+    R = CYLINDER_RADIUS
+    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R), walls.cylinder((0, 0, 0), (0, 0, 1), R, (0, top + 0.01))]
+    sim = Simulation(r, x, layer=layer, walls=wl, friction=0.7,
+                     settings=SolverSettings(time_step=5e-4, tolerance=max(tolerance, 1e-3), max_sweeps=200),
+                     domain=((-R, -R, 0.0), (R, R, top)))
+    for _ in range(int(1.2 / 5e-4)):
+        sim.step()
+    xs, rs = sim.positions(), sim.radii()
+    z_top = float((xs[:, 2] + rs).max())
+    sim.set_walls(wl + [walls.plane((0, 0, z_top), (0, 0, -1), radius=R)])
+    sim.set_velocities(np.zeros((particles, 3)))
+    arrays = sim.state_dict()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    io.save_checkpoint(path, arrays, {"walls": [w.to_dict() for w in sim.walls], "height": z_top})
+    sim.close()
+    return arrays
+
+
+def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
+          tolerance: float = 1e-4, seed: int = 1) -> dict:
+    """The shear stage (bonds, split rings, 50 mm/min) on a prepared sample, for `time`
+    simulated seconds (the full test is 3 s: 15000 steps)."""
+    _init(arch, precision)
+    from .simulation import BondLaw, Simulation, SolverSettings
+    arrays = bench_sample(particles, seed, tolerance)
+    r, x = arrays["particles/radius"], arrays["particles/x"]
+    R = CYLINDER_RADIUS
+    height = float((x[:, 2] + r).max())
+    z_i = 0.5 * height
+    v = (50e-3 / 60.0, 0.0, 0.0)
+    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R),
+          walls.cylinder((0, 0, 0), (0, 0, 1), R, (0.0, z_i - 5e-4)),
+          walls.cylinder((0, 0, 0), (0, 0, 1), R, (z_i + 5e-4, height + 0.01), motion="constant", velocity=v),
+          walls.plane((0, 0, height), (0, 0, -1), radius=R, motion="constant", velocity=v)]
+    sim = Simulation(r, x, layer=arrays["particles/layer"], walls=wl, friction=0.7,
+                     settings=SolverSettings(tolerance=tolerance), bond_law=BondLaw(mode="paper"),
+                     domain=((-R - 0.01, -R - 0.01, 0.0), (R + 0.01, R + 0.01, height + 0.01)))
+    sim.load_state_dict(arrays)
+    bonds = sim.create_bonds(1e-5)
+    steps = max(2, int(round(time / sim.settings.time_step)))
+    compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+    out = {
+        "benchmark": "shear", "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
+        "particles": particles, "steps": steps, "simulated_time_s": steps * sim.settings.time_step,
+        "bonds": bonds, "bonds_intact": sim.bonds_intact_count(),
+        "mean_sweeps": float(sweeps.mean()), "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
+        "final_residual": float(residuals[-1]), "tolerance": tolerance, "arch": arch,
+        "precision": precision, "schedule": sim.schedule, "loop_wall_s": loop_s,
+        "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
+        "contacts": int(sim.contact_arrays()["i"].size),
+        "max_overlap_ratio": bed_metrics(sim)["max_overlap_ratio"],
+    }
+    sim.close()
+    return out
+
+
+def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: str = "cpu",
+            precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling") -> dict:
+    """Seconds per particle per step against N: a settled-bed-like state is not needed here;
+    each size pours a column of N binder-course spheres into a cylinder whose cross-section
+    grows with N (same column height), timed over `steps` steps after 0.3 s of pouring."""
+    import csv
+    import pathlib
+    _init(arch, precision)
+    rows = []
+    for n in sizes:
+        radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
+        sim = pour_setup(int(n), 1, tolerance, radius=radius)
+        for _ in range(int(0.3 / sim.settings.time_step)):
+            sim.step()
+        compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+        rows.append({"particles": int(n), "seconds_per_particle_step": loop_s / (n * (steps - 1)),
+                     "mean_sweeps": float(sweeps.mean()), "final_residual": float(residuals[-1]),
+                     "contacts": int(sim.contact_arrays()["i"].size),
+                     "seconds_per_contact_sweep": loop_s / max(1.0, float(sweeps.sum())) /
+                     max(1, sim.contact_arrays()["i"].size)})
+        sim.close()
+    base = pathlib.Path(out)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    with open(base.with_suffix(".csv"), "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.loglog([r["particles"] for r in rows], [r["seconds_per_particle_step"] for r in rows], "o-",
+              label=f"tcd ({arch}, {precision})")
+    ax.loglog([r["particles"] for r in rows], [r["seconds_per_contact_sweep"] * 1e3 for r in rows], "s--",
+              label="s per contact update x 1e3")
+    ax.set_xlabel("particles N")
+    ax.set_ylabel("s per particle per step")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(base.with_suffix(".png"), dpi=120)
+    plt.close(fig)
+    return {"benchmark": "scaling", "arch": arch, "precision": precision, "rows": rows,
+            "csv": str(base.with_suffix(".csv")), "plot": str(base.with_suffix(".png"))}

@@ -189,7 +189,9 @@ class PrepareStage(_Model):
     course's table (PHYSICS.md section 7) times `size_scale`. Spheres start at lattice sites
     (`lattice_jitter_mm` horizontal offsets) in a column up to `column_height_mm` and fall until
     the fastest is below `settle_speed` or `max_settle_time` has passed; the top plate then
-    vibrates (`vibration_amplitude_mm`, `vibration_frequency`, `vibration_duration`)."""
+    vibrates (`vibration_amplitude_mm`, `vibration_frequency`, `vibration_duration`) and holds
+    the layer at its height until settled (at most `max_hold_time`). The plate is servo-
+    controlled: it never pushes with more than `plate_force_factor` times the sample's weight."""
     kind: Literal["prepare"]
     cylinder_diameter_mm: float = Field(150.0, gt=0)
     layer_height_mm: float = Field(60.0, gt=0)
@@ -206,6 +208,8 @@ class PrepareStage(_Model):
     vibration_frequency: float = Field(30.0, gt=0)
     vibration_duration: float = Field(1.0, ge=0)
     sample_height_mm: float = Field(120.0, gt=0)
+    max_hold_time: float = Field(0.5, gt=0)
+    plate_force_factor: float = Field(3.0, gt=0)
 
     @property
     def cylinder_diameter(self) -> float:

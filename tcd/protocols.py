@@ -65,9 +65,6 @@ class Phase:
         return cls(**d)
 
 
-PLATE_FORCE_FACTOR = 3.0          # servo force limit: this many times the sample's weight
-
-
 def servo_step(sim, phase) -> None:
     """Move the servo plate for the coming step (see module docstring)."""
     sv = phase.info.get("servo")
@@ -103,17 +100,10 @@ class Prepare:
         self.h = scenario.solver.time_step
 
     # -- sizes ---------------------------------------------------------------------------------
-    def layer_count(self, course: str) -> int:
-        c = self.cfg
-        if c.particles_per_layer > 0:
-            return c.particles_per_layer
-        n = packing.count_for_layer(course, 2 * self.radius, c.layer_height_mm * 1e-3, c.packing_fraction)
-        return max(1, int(round(n / c.size_scale**3)))
-
     def layer_radii(self, layer: int) -> np.ndarray:
         course = self.cfg.courses[layer]
         rng = np.random.default_rng([self.seed, layer, 0])
-        return packing.course_radii(course, self.layer_count(course), rng) * self.cfg.size_scale
+        return packing.course_radii(course, self.cfg.layer_particle_count(course), rng) * self.cfg.size_scale
 
     def column_top(self) -> float:
         return self.cfg.column_height_mm * 1e-3
@@ -158,15 +148,17 @@ class Prepare:
         dur = max(c.vibration_duration, self.h)
         servo = {"wall": 2, "z": start, "z0": start, "target": target, "t0": t,
                  "amplitude": amp, "frequency": c.vibration_frequency,
-                 "force_limit": PLATE_FORCE_FACTOR * max(weight, 1e-12)}
+                 "force_limit": c.plate_force_factor * max(weight, 1e-12)}
         if name == "vibrate":
             servo["v_mean"] = (target - start) / dur
             servo["v_max"] = max(2 * math.pi * c.vibration_frequency * amp + abs(servo["v_mean"]), 1e-3)
             steps, settle = self.steps(c.vibration_duration), False
         else:
-            servo["v_mean"] = -0.05                      # approach the target at 5 cm/s
-            servo["v_max"] = 0.05
-            steps, settle = self.steps(0.5), True
+            # approach the target slower than the settling speed, so the plate's own motion
+            # never keeps the bed from being declared settled
+            servo["v_mean"] = servo["v_max"] = 0.5 * c.settle_speed
+            servo["v_mean"] *= -1.0
+            steps, settle = self.steps(c.max_hold_time), True
         top = plane((0, 0, start), (0, 0, -1), radius=self.radius,
                     friction=self.scn.material.wall_friction, name="top plate")
         return Phase(name, self.mould() + [top], steps, settle=settle,
@@ -307,8 +299,9 @@ class Shear:
         z_b = st["bonds/broken_pos"][broken, 2]
         z_i = phase.info["z_interface"]
         x, v = sim.positions(), sim.velocities()
-        upper = x[:, 2] > z_i + 0.01
-        lower = x[:, 2] < z_i - 0.01
+        band = 0.25 * c.ring_height_mm * 1e-3
+        upper = x[:, 2] > z_i + band
+        lower = x[:, 2] < z_i - band
         return {
             "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d_peak * 1e3, "residual_MPa": float(tail) * 1e-6,
             "peak_index": k, "smoothing_window_mm": c.smoothing_window_mm,

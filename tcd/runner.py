@@ -146,6 +146,9 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
                     break
                 sim.set_walls(phase.walls)
                 step_in_phase = 0
+                if phase_idx == 0:          # every stage's first state is kept
+                    io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
+                                    stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
             bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
             bar.update(step_in_phase, sim.time)
             while step_in_phase < phase.steps:
@@ -204,8 +207,8 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
             io.save_checkpoint(sample_dir / "prepared.h5", sim.state_dict(),
                                {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
                                 "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]})
-            io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage="prepare",
-                            scenario_text=scn.text, tcd_version=__version__)
+        io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage=stage.kind,
+                        scenario_text=scn.text, tcd_version=__version__)    # and its last
         series = {}
         stage_idx += 1
         phase_idx = 0
