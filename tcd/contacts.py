@@ -34,17 +34,25 @@ def cell_index(g: ti.template(), c):
 
 
 @ti.func
-def box_cells(g: ti.template(), p: ti.template(), i, half_alert):
-    e = p.radius[i] + half_alert
+def reach(p: ti.template(), i, h):
+    """How far sphere i can travel over the coming step (m): contacts are built for every pair
+    that may touch by the end of the step, not only for those already within the alert distance,
+    so fast grains cannot pass through each other between two detections."""
+    return h * (p.v[i].norm() + 9.81 * h)
+
+
+@ti.func
+def box_cells(g: ti.template(), p: ti.template(), i, half_alert, h):
+    e = p.radius[i] + half_alert + reach(p, i, h)
     return cell_of(g, p.x[i] - e), cell_of(g, p.x[i] + e)
 
 
 @ti.kernel
-def grid_count(p: ti.template(), g: ti.template(), half_alert: float):
+def grid_count(p: ti.template(), g: ti.template(), half_alert: float, h: float):
     for c in range(g.ncells[None]):
         g.cell_count[c] = 0
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert)
+        lo, hi = box_cells(g, p, i, half_alert, h)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
@@ -64,11 +72,11 @@ def exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32) -> ti.
 
 
 @ti.kernel
-def grid_scatter(p: ti.template(), g: ti.template(), half_alert: float):
+def grid_scatter(p: ti.template(), g: ti.template(), half_alert: float, h: float):
     for c in range(g.ncells[None]):
         g.cell_count[c] = 0
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert)
+        lo, hi = box_cells(g, p, i, half_alert, h)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
@@ -112,14 +120,16 @@ def bonded_intact(bd: ti.template(), i, j):
 
 
 @ti.func
-def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo_i, half_alert, alert):
-    """1 if pair (i, j) is seen from cell c for the first time and is within the alert distance."""
+def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo_i, half_alert,
+              alert, h):
+    """1 if pair (i, j) is seen from cell c for the first time and may be in contact by the end
+    of the step (gap below the alert distance plus both reaches)."""
     ok = 0
-    lo_j, hi_j = box_cells(g, p, j, half_alert)
+    lo_j, hi_j = box_cells(g, p, j, half_alert, h)
     first = ti.max(lo_i, lo_j)
     if first[0] == c[0] and first[1] == c[1] and first[2] == c[2]:
         gap = (p.x[j] - p.x[i]).norm() - p.radius[i] - p.radius[j]
-        if gap < alert:
+        if gap < alert + reach(p, i, h) + reach(p, j, h):
             if bonded_intact(bd, i, j) == 0:
                 ok = 1
     return ok
@@ -127,9 +137,9 @@ def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo
 
 @ti.kernel
 def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
-                  ct: ti.template(), half_alert: float, alert: float):
+                  ct: ti.template(), half_alert: float, alert: float, h: float):
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert)
+        lo, hi = box_cells(g, p, i, half_alert, h)
         m = 0
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -139,19 +149,19 @@ def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.
                     for s in range(g.cell_start[ci], g.cell_start[ci] + g.cell_count[ci]):
                         j = g.items[s]
                         if j > i:
-                            m += candidate(p, g, bd, i, j, c, lo, half_alert, alert)
+                            m += candidate(p, g, bd, i, j, c, lo, half_alert, alert, h)
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
-            if valid == 1 and gap < alert:
+            if valid == 1 and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
                 m += 1
         ct.count[i] = m
 
 
 @ti.kernel
 def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
-                 ct: ti.template(), half_alert: float, alert: float):
+                 ct: ti.template(), half_alert: float, alert: float, h: float):
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert)
+        lo, hi = box_cells(g, p, i, half_alert, h)
         base = ct.start[i]
         m = 0
         for cx in range(lo[0], hi[0] + 1):
@@ -162,7 +172,7 @@ def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
                     for s in range(g.cell_start[ci], g.cell_start[ci] + g.cell_count[ci]):
                         j = g.items[s]
                         if j > i:
-                            if candidate(p, g, bd, i, j, c, lo, half_alert, alert) == 1:
+                            if candidate(p, g, bd, i, j, c, lo, half_alert, alert, h) == 1:
                                 ct.j[base + m] = j
                                 m += 1
         # insertion sort of the particle partners: canonical order whatever the cell order
@@ -175,7 +185,7 @@ def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
             ct.j[base + b + 1] = key
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
-            if valid == 1 and gap < alert:
+            if valid == 1 and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
                 ct.j[base + m] = p.count[None] + k
                 m += 1
         for a in range(m):
