@@ -320,23 +320,23 @@ class Simulation:
         half = 0.5 * self.alert
         while True:
             g = self.grid
-            ck.grid_count(p, g, half)
+            ck.grid_count(p, g, half, self.settings.time_step)
             total = ck.exclusive_scan(g.cell_count, g.cell_start, g.ncells[None])
             if total <= g.capacity:
                 break
             self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")
             release(g)
             self.grid = self._make_grid(2 * total)
-        ck.grid_scatter(p, self.grid, half)
+        ck.grid_scatter(p, self.grid, half, self.settings.time_step)
         while True:
             ct = self.contacts
-            ck.contact_count(p, wl, self.grid, bd, ct, half, self.alert)
+            ck.contact_count(p, wl, self.grid, bd, ct, half, self.alert, self.settings.time_step)
             total = ck.exclusive_scan(ct.count, ct.start, self.n)
             if total <= ct.capacity:
                 break
             self._grow_contacts(int(total * 1.5) + 16)
         ct.total[None] = total
-        ck.contact_fill(p, wl, self.grid, bd, ct, half, self.alert)
+        ck.contact_fill(p, wl, self.grid, bd, ct, half, self.alert, self.settings.time_step)
 
     def _grow_contacts(self, capacity: int) -> None:
         old = self.contacts
@@ -514,3 +514,8 @@ class Simulation:
     def kinetic_energy(self) -> float:
         from .observables import kinetic_energy
         return kinetic_energy(self.velocities(), self.angular_velocities(), self.radii(), self.density)
+
+    def replace_wall(self, k: int, wall: Wall) -> None:
+        """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
+        self.walls[k] = wall
+        self._upload_walls(self.time)
