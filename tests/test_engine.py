@@ -30,9 +30,12 @@ def random_cloud(n, seed, box=0.05):
     return r, x
 
 
-def brute_force_pairs(x, r, alert):
+def brute_force_pairs(x, r, alert, v=None, h=H):
+    """Pairs that may touch by the end of a step: gap < alert + h (|v_i| + g h) + h (|v_j| + g h)."""
     d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2) - r[:, None] - r[None, :]
-    i, j = np.nonzero(np.triu(d < alert, k=1))
+    speed = np.zeros(len(r)) if v is None else np.linalg.norm(v, axis=1)
+    reach = h * (speed + 9.81 * h)
+    i, j = np.nonzero(np.triu(d < alert + reach[:, None] + reach[None, :], k=1))
     return set(zip(i.tolist(), j.tolist()))
 
 
@@ -40,12 +43,14 @@ def brute_force_pairs(x, r, alert):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_grid_broad_phase_equals_brute_force(seed):
     r, x = random_cloud(500, seed)
-    sim = Simulation(r, x, settings=SolverSettings(alert_ratio=0.5),
+    v = np.random.default_rng(seed).normal(0.0, 2.0, size=x.shape)   # fast grains reach further
+    sim = Simulation(r, x, velocity=v, settings=SolverSettings(alert_ratio=0.5),
                      domain=((0, 0, 0), (0.05, 0.05, 0.05)))
     sim._build_contacts()
     c = sim.contact_arrays()
     found = list(zip(c["i"].tolist(), c["j"].tolist()))
-    expected = brute_force_pairs(x, r, sim.alert)
+    expected = brute_force_pairs(x, r, sim.alert, v)
+    assert len(expected) > len(brute_force_pairs(x, r, sim.alert))
     assert len(expected) > 200          # the cloud is dense enough to test something
     assert len(found) == len(set(found)), "a pair was found twice"
     assert set(found) == expected
