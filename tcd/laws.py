@@ -21,11 +21,13 @@ def signorini_coulomb(ufn, uft, rhs_n, wnn, wtt, mu):
     Returns (R_n, R_T) with R_T a vector in the tangent plane."""
     rn = ti.max(0.0, -(ufn + rhs_n) / wnn)
     rt = -uft / wtt
-    nt = rt.norm()
-    if nt > mu * rn:
+    # squared comparison: the square root is only paid when the contact slides
+    nt2 = rt.norm_sqr()
+    limit = mu * rn
+    if nt2 > limit * limit:
         scale = 0.0
-        if nt > 0.0:
-            scale = mu * rn / nt
+        if nt2 > 0.0:
+            scale = limit / ti.sqrt(nt2)
         rt *= scale
     return rn, rt
 

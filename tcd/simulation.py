@@ -321,7 +321,7 @@ class Simulation:
         while True:
             g = self.grid
             ck.grid_count(p, g, half, self.settings.time_step)
-            total = ck.exclusive_scan(g.cell_count, g.cell_start, g.ncells[None])
+            total = ck.grid_scan(g)
             if total <= g.capacity:
                 break
             self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")

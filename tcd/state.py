@@ -44,6 +44,21 @@ def _scalar(dtype=ti.i32):
     return ti.field(dtype, shape=())
 
 
+def _struct(n, *fields):
+    """Place `fields` (created without shape) side by side, one record per row (AoS): the
+    solver reads all of them for a body or a contact at once, so one cache line serves them."""
+    ti.root.dense(ti.i, n).place(*fields)
+    return fields
+
+
+def _vec_row():
+    return ti.Vector.field(3, backend.real())
+
+
+def _real_row():
+    return ti.field(backend.real())
+
+
 _pool: dict = {}
 
 
@@ -91,14 +106,17 @@ class Particles:
     """Rigid spheres; count: how many of the `capacity` slots are used. Model: radius (m),
     inv_mass (1/kg), inv_inertia (1/(kg m^2)), layer (0 bottom course, 1 top course), external
     force f_ext (N). State: x (m), v (m/s), w (rad/s); v_old, w_old hold the velocities at the
-    beginning of the step."""
+    beginning of the step. (v, w, radius, inv_mass, inv_inertia) are one record per body (AoS):
+    the Gauss-Seidel hot loop reads them together."""
     pool_args = ()
 
     def __init__(self, capacity: int):
         c = self.capacity = capacity
-        self.x, self.v, self.w = _vec(c), _vec(c), _vec(c)
+        # the solver's per-body record: velocities and the model data it multiplies them by
+        self.v, self.w, self.radius, self.inv_mass, self.inv_inertia = _struct(
+            c, _vec_row(), _vec_row(), _real_row(), _real_row(), _real_row())
+        self.x = _vec(c)
         self.v_old, self.w_old, self.f_ext = _vec(c), _vec(c), _vec(c)
-        self.radius, self.inv_mass, self.inv_inertia = _real(c), _real(c), _real(c)
         self.layer = _int(c)
         self.count = _scalar()
 
@@ -129,6 +147,7 @@ class WallFields:
 class Grid:
     """Uniform grid for the broad phase (counting sort of particles by the cells their
     enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims, ncells;
+    layer_lo, layer_hi: z layers touched this step (cells are numbered z-slowest);
     `cell_capacity` cells and `capacity` particle-cell incidences."""
     pool_args = ()
 
@@ -141,6 +160,7 @@ class Grid:
         self.dims = ti.Vector.field(3, ti.i32, shape=())
         self.inv_cell = _scalar(backend.real())
         self.ncells = _scalar()
+        self.layer_lo, self.layer_hi = _scalar(), _scalar()   # occupied z layers (slab)
 
     def reset(self):
         self.ncells[None] = 0
@@ -163,18 +183,23 @@ class Contacts:
     Per contact: i, j, normal n (i to j), gap g_beg at the predicted configuration (m),
     rhs = max(g_beg, 0) / (theta H) (m/s), wnn, wtt (Delassus diagonal, 1/kg), mu, impulse R
     (N s, global vector), colour. Per particle: count and start (CSR, `particle_capacity`).
-    The previous step's (j, R, start) are kept in prev_* for warm starting."""
+    The previous step's (j, R, start) are kept in prev_* for warm starting. The solver's
+    fields (i, j, normal, impulse, rhs, wnn, wtt, mu) are one record per contact (AoS)."""
 
     def __init__(self, capacity: int, particle_capacity: int):
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         c, n = capacity, particle_capacity
-        self.i, self.j, self.colour = _int(c), _int(c), _int(c)
-        self.normal, self.impulse = _vec(c), _vec(c)
-        self.gap, self.rhs, self.wnn, self.wtt, self.mu = _real(c), _real(c), _real(c), _real(c), _real(c)
+        # the solver's per-contact record (AoS), read whole at every local solve
+        (self.i, self.j, self.normal, self.impulse, self.rhs, self.wnn, self.wtt,
+         self.mu) = _struct(c, ti.field(ti.i32), ti.field(ti.i32), _vec_row(), _vec_row(),
+                            _real_row(), _real_row(), _real_row(), _real_row())
+        self.colour = _int(c)
+        self.gap = _real(c)
         self.count, self.start = _int(n), _int(n + 1)
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
         self.total = _scalar()
         self.prev_total = _scalar()
+        self.partition = None       # two-thread schedule (Partition), made when first needed
 
     def reset(self):
         self.total[None] = 0
@@ -232,6 +257,25 @@ class ColourSet:
 
 
 @ti.data_oriented
+class Partition:
+    """Two-thread schedule of the serial Gauss-Seidel: bodies split into two halves by index
+    (part per body, see solver.partition_items). Items (bonds first, then contacts, as in ColourSet) are
+    listed in `order` (canonical order kept) as: interior of half 0, interior of half 1, then
+    the boundary items that join the halves; `start` is the CSR of these three lists. change:
+    per list (sum |dR|, sum |R|) of the last sweep."""
+
+    def __init__(self, capacity: int, particle_capacity: int):
+        self.capacity, self.pool_args = capacity, (particle_capacity,)
+        self.part = _int(particle_capacity)
+        self.order = _int(capacity)
+        self.start = _int(4)
+        self.change = ti.Vector.field(2, backend.real(), shape=3)
+
+    def reset(self):
+        pass
+
+
+@ti.data_oriented
 class SolverStats:
     """Per-step solver record: sweeps used, final residual, colours used."""
     pool_args = ()
@@ -252,7 +296,9 @@ def field_bytes(obj) -> int:
     """Bytes held by the Taichi fields of a container (for memory reports)."""
     total = 0
     for v in vars(obj).values():
-        if isinstance(v, ti.MatrixField):
+        if isinstance(v, Partition):
+            total += field_bytes(v)
+        elif isinstance(v, ti.MatrixField):
             total += int(np.prod(v.shape)) * v.n * v.m * np.dtype(_np_dtype(v)).itemsize
         elif isinstance(v, ti.Field):
             total += int(np.prod(v.shape)) * np.dtype(_np_dtype(v)).itemsize
