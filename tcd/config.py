@@ -101,13 +101,15 @@ class SolverConfig(_Model):
     """Moreau-Jean / NLGS settings. time_step H (s); theta in [0.5, 1]; tolerance on the
     relative impulse change per sweep; max_sweeps per step; check_every: sweeps between
     convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial" or
-    "coloured"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z)."""
+    "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
+    "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z)."""
     time_step: float = Field(2e-4, gt=0)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)
     max_sweeps: int = Field(1000, ge=1)
     check_every: int = Field(1, ge=1)
     schedule: Literal["auto", "serial", "coloured"] = "auto"
+    acceleration: Literal["nncg", "none"] = "nncg"
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
 
@@ -124,7 +126,7 @@ class SolverConfig(_Model):
         return SolverSettings(time_step=self.time_step, theta=self.theta,
                               tolerance=self.tolerance, max_sweeps=self.max_sweeps,
                               check_every=self.check_every, schedule=self.schedule,
-                              alert_ratio=self.alert_ratio, gravity=(0.0, 0.0, -self.gravity))
+                              acceleration=self.acceleration, alert_ratio=self.alert_ratio, gravity=(0.0, 0.0, -self.gravity))
 
 
 class MaterialConfig(_Model):

@@ -25,6 +25,7 @@ from .state import (MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, Solv
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "coloured")
+ACCELERATIONS = ("nncg", "none")
 
 
 class CapacityError(RuntimeError):
@@ -35,7 +36,9 @@ class CapacityError(RuntimeError):
 class SolverSettings:
     """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the relative
     impulse change per sweep; max_sweeps; check_every (sweeps between convergence checks);
-    schedule: "serial", "coloured" or "auto" (serial on CPU, coloured on GPU); alert_ratio:
+    schedule: "serial", "coloured" or "auto" (serial on CPU, coloured on GPU); acceleration:
+    "nncg" (nonsmooth nonlinear conjugate gradient on top of the serial Gauss-Seidel sweeps) or
+    "none" (plain Gauss-Seidel; the coloured schedule is always plain); alert_ratio:
     alert distance as a fraction of the smallest radius; gravity (m/s^2, vector)."""
     time_step: float = 2e-4
     theta: float = 1.0
@@ -43,6 +46,7 @@ class SolverSettings:
     max_sweeps: int = 1000
     check_every: int = 1
     schedule: str = "auto"
+    acceleration: str = "nncg"
     alert_ratio: float = 0.1
     gravity: tuple = (0.0, 0.0, -9.81)
 
@@ -57,6 +61,9 @@ class SolverSettings:
             raise ValueError("max_sweeps and check_every must be >= 1")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if self.acceleration not in ACCELERATIONS:
+            raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
+                             f"{self.acceleration!r}")
         if not self.alert_ratio > 0:
             raise ValueError(f"alert_ratio must be positive, got {self.alert_ratio}")
 
@@ -274,7 +281,8 @@ class Simulation:
         ck.contact_geometry(p, wl, ct, h, theta, self.friction)
         sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
-            sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every)
+            sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
+                           1 if s.acceleration == "nncg" else 0)
             colours = 0
         else:
             colours = self._solve_coloured()

@@ -66,13 +66,24 @@ def relative_velocity(p: ti.template(), wl: ti.template(), i, j, n):
 def solve_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part, measure):
     """Local solve of contact k against the current body velocities; n_part: particle count
     (j >= n_part is a wall). Returns (|dR|, |R|) when `measure` is 1, else zeros (the two
-    square roots are only paid on the sweeps that check convergence).
+    square roots are only paid on the sweeps that check convergence)."""
+    dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
+    da = 0.0
+    ra = 0.0
+    if measure == 1:
+        da, ra = dr.norm(), r_new.norm()
+    return da, ra
+
+
+@ti.func
+def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part):
+    """Local solve of contact k; returns (dR, R) (zero vectors if both bodies are kinematic).
 
     For spheres the relative velocity at the contact is u = v_j - v_i - (r_i w_i + r_j w_j) x n
     and an impulse dR on j (-dR on i) changes w_i and w_j by -(I^-1 r) (n x dR): one cross
     product each way."""
-    da = 0.0
-    ra = 0.0
+    dr = ti.Vector([0.0, 0.0, 0.0])
+    r_new = ti.Vector([0.0, 0.0, 0.0])
     wnn = ct.wnn[k]
     if wnn > 0.0:             # two kinematic bodies: nothing to solve
         i, j, n = ct.i[k], ct.j[k], ct.normal[k]
@@ -104,15 +115,19 @@ def solve_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_p
             p.v[j] = p.v[j] + dr * p.inv_mass[j]
             p.w[j] = p.w[j] - (p.inv_inertia[j] * rj) * c
         ct.impulse[k] = r_new
-        if measure == 1:
-            da, ra = dr.norm(), r_new.norm()
-    return da, ra
+    return dr, r_new
 
 
 @ti.func
 def solve_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
-    da = 0.0
-    ra = 0.0
+    dr, r_new = solve_bond_dr(p, wl, bd, b)
+    return dr.norm(), r_new.norm()
+
+
+@ti.func
+def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
+    dr = ti.Vector([0.0, 0.0, 0.0])
+    r_new = ti.Vector([0.0, 0.0, 0.0])
     if bd.state[b] == INTACT:
         i, j, n = bd.i[b], bd.j[b], bd.normal[b]
         r_old = bd.impulse[b]
@@ -129,8 +144,7 @@ def solve_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
         dr = r_new - r_old
         apply_impulse(p, i, j, n, dr)
         bd.impulse[b] = r_new
-        da, ra = dr.norm(), r_new.norm()
-    return da, ra
+    return dr, r_new
 
 
 # --- step kernels ------------------------------------------------------------------------------
@@ -158,16 +172,26 @@ def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
 
 @ti.kernel
 def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-                st: ti.template(), max_sweeps: ti.i32, tol: float, check_every: ti.i32):
+                st: ti.template(), max_sweeps: ti.i32, tol: float, check_every: ti.i32,
+                accel: ti.template()):
+    """All sweeps of one step in one launch. `accel` (static): 0 plain symmetric Gauss-Seidel;
+    1 nonsmooth nonlinear conjugate gradient (NNCG, Silcowitz, Niebe & Erleben 2010): each
+    sweep's change g_k is used as a descent direction and the impulses get the momentum
+    beta p_{k-1}, beta = |g_k|^2 / |g_{k-1}|^2, restarted (p = g) when beta > 1. The momentum
+    is applied to the bodies at once (one extra pass over the items), so velocities always
+    equal v_free + M^-1 H^T R. The step ends after a plain sweep, never after a momentum pass,
+    so the final impulses satisfy the contact law."""
     sweeps = 0
     residual = 0.0
     done = 0
     nb = bd.total[None]
     nc = ct.total[None]
     n_part = p.count[None]
+    g2_prev = 0.0
     while done == 0:
         dsum = 0.0
         rsum = 0.0
+        g2 = 0.0
         measure = 0
         if (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps:
             measure = 1
@@ -178,16 +202,23 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
             b = bb
             if backward == 1:
                 b = nb - 1 - bb
-            da, ra = solve_bond(p, wl, bd, b)
-            dsum += da
-            rsum += ra
+            dr, r_new = solve_bond_dr(p, wl, bd, b)
+            if ti.static(accel == 1):
+                bd.acc_d[b] = dr
+                g2 += dr.dot(dr)
+            dsum += dr.norm()
+            rsum += r_new.norm()
         for kk in range(nc):
             k = kk
             if backward == 1:
                 k = nc - 1 - kk
-            da, ra = solve_contact(p, wl, ct, k, n_part, measure)
-            dsum += da
-            rsum += ra
+            dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
+            if ti.static(accel == 1):
+                ct.acc_d[k] = dr
+                g2 += dr.dot(dr)
+            if measure == 1:
+                dsum += dr.norm()
+                rsum += r_new.norm()
         sweeps += 1
         if sweeps % check_every == 0 or sweeps >= max_sweeps:
             residual = 0.0
@@ -195,6 +226,29 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                 residual = dsum / rsum
             if residual <= tol or sweeps >= max_sweeps:
                 done = 1
+        if ti.static(accel == 1):
+            if done == 0:
+                beta = 0.0
+                if g2_prev > 0.0:
+                    beta = g2 / g2_prev
+                if beta > 1.0 or sweeps == 1:
+                    beta = 0.0
+                for b in range(nb):
+                    if bd.state[b] == INTACT:
+                        pb = bd.acc_p[b]
+                        if beta > 0.0:
+                            dr = beta * pb
+                            bd.impulse[b] += dr
+                            apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+                        bd.acc_p[b] = beta * pb + bd.acc_d[b]
+                for k in range(nc):
+                    pk = ct.acc_p[k]
+                    if beta > 0.0 and ct.wnn[k] > 0.0:
+                        dr = beta * pk
+                        ct.impulse[k] += dr
+                        apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
+                    ct.acc_p[k] = beta * pk + ct.acc_d[k]
+            g2_prev = g2
     st.sweeps[None] = sweeps
     st.residual[None] = residual
 

@@ -195,6 +195,8 @@ class Contacts:
                             _real_row(), _real_row(), _real_row(), _real_row())
         self.colour = _int(c)
         self.gap = _real(c)
+        # accelerated (NNCG) Gauss-Seidel: search direction and last sweep's change per contact
+        self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.count, self.start = _int(n), _int(n + 1)
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
         self.total = _scalar()
@@ -229,6 +231,7 @@ class Bonds:
         self.broken_time, self.broken_pos = _real(c), _vec(c)
         self.normal, self.rhs_t, self.d_t_beg = _vec(c), _vec(c), _vec(c)
         self.rhs_n, self.cn, self.ct, self.wnn, self.wtt = _real(c), _real(c), _real(c), _real(c), _real(c)
+        self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.start = _int(particle_capacity + 1)
         self.total = _scalar()
         self.broken = _scalar()
