@@ -464,6 +464,11 @@ class Simulation:
         put(ct.prev_impulse, d["contacts/impulse"])
         put(ct.prev_start, d["contacts/start"])
         ct.prev_total[None] = m
+        # the current contact list too, so that state_dict(load_state_dict(d)) == d even in a
+        # pooled container that held another simulation's contacts
+        for key in ("i", "j", "impulse", "gap", "start"):
+            put(getattr(ct, key), d["contacts/" + key])
+        ct.total[None] = m
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
         self._set_bond_arrays(bonds)

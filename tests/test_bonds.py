@@ -75,10 +75,17 @@ def test_tangential_creep_follows_2_1_plus_nu_F_J_t():
     assert worst < 0.01
 
 
+def position_quantum(precision, x=0.008):
+    """Spacing of representable positions near |x| (m): the floor of any gap resolution."""
+    return float(np.spacing(np.float32(x) if precision == "f32" else np.float64(x)))
+
+
 @pytest.mark.parametrize("mode", ["burgers", "paper"])
-def test_relaxation_under_held_displacement(mode):
+def test_relaxation_under_held_displacement(mode, precision):
     h = 5e-3
-    delta0 = 1e-6
+    delta0 = 1e-5
+    # the held displacement is resolved to a position quantum: relative error ~ quantum/delta0
+    rtol = max(1e-6, 20 * position_quantum(precision) / delta0)
     sim = pair(0.004, 0.004, mode=mode, h=h)
     put(sim.particles.inv_mass, [0.0, 0.0])       # both held
     x = sim.positions()
@@ -93,11 +100,11 @@ def test_relaxation_under_held_displacement(mode):
     times, forces = np.array(times), np.array(forces)
     if mode == "burgers":
         disc, exact = laws.burgers_relaxation_np(delta0, times, h, K_M, ETA_M, K_K, ETA_K)
-        np.testing.assert_allclose(forces, disc, rtol=1e-6)
+        np.testing.assert_allclose(forces, disc, rtol=rtol)
         np.testing.assert_allclose(forces, exact, rtol=0.01)
         assert forces[-1] < 0.5 * forces[0]                          # it does relax
     else:
-        np.testing.assert_allclose(forces, delta0 / J(times), rtol=1e-6)
+        np.testing.assert_allclose(forces, delta0 / J(times), rtol=rtol)
 
 
 def ramp_until_break(sim, direction, rate, h, steps):
@@ -128,7 +135,7 @@ def test_bond_breaks_in_tension_at_yield_force_then_separates():
     assert sim.velocities()[1, 0] > 0
 
 
-def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction():
+def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol):
     r_small = 0.001
     h = 2e-4
     mu = 0.7
@@ -154,14 +161,14 @@ def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction():
     assert len(c["i"]) == 1                     # the broken bond is now a frictional contact
     rn = c["impulse"][0] @ c["normal"][0]
     rt = np.linalg.norm(c["impulse"][0] - rn * c["normal"][0])
-    np.testing.assert_allclose(rt, mu * rn, rtol=1e-9)          # sliding: on the cone
+    np.testing.assert_allclose(rt, mu * rn, rtol=tol)           # sliding: on the cone
     np.testing.assert_allclose(rn / h, fn, rtol=1e-2)
     a = (sim.velocities()[1, 1] - v0) / h
-    np.testing.assert_allclose(a, (ft + c["impulse"][0][1] / h) / m, rtol=1e-6)
+    np.testing.assert_allclose(a, (ft + c["impulse"][0][1] / h) / m, rtol=max(1e-6, 10 * tol))
     np.testing.assert_allclose(a, (ft - mu * fn) / m, rtol=0.02)
 
 
-def test_bonded_cluster_at_rest_under_gravity_stays_at_rest():
+def test_bonded_cluster_at_rest_under_gravity_stays_at_rest(precision):
     r = 0.004
     xs = []
     for ix in range(3):
@@ -172,10 +179,12 @@ def test_bonded_cluster_at_rest_under_gravity_stays_at_rest():
                      domain=((-0.01, -0.01, -0.01), (0.03, 0.01, 0.03)))
     assert sim.create_bonds(gap_tolerance=1e-7) == 12
     m = 2600 * 4 / 3 * math.pi * r**3
+    # floor: a bond gap is known to a position quantum q, so its velocity term q / H is noise
+    noise = 0.5 * 9 * m * (10 * position_quantum(precision, 0.02) / sim.settings.time_step) ** 2
     for _ in range(10):
         sim.step(100)
         ke = 0.5 * m * (sim.velocities() ** 2).sum()
-        assert ke < 1e-12 * m * 9.81 * r       # no energy created by the bonds
+        assert ke < max(1e-12 * m * 9.81 * r, noise)   # no energy created by the bonds
     assert sim.bonds_intact_count() == 12
     # it only creeps down by the bond compliance under the weight above: micrometres
     assert np.abs(sim.positions() - np.array(xs)).max() < 1e-5

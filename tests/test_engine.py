@@ -202,12 +202,12 @@ def test_spheres_inside_moving_cylinder_are_carried(tol):
     v = sim.velocities()
     xc = wl[1].position(sim.time)
     rho = np.hypot(sim.positions()[:, 0] - xc[0], sim.positions()[:, 1] - xc[1]) + r
-    assert np.all(rho <= R + 1e-9)
+    assert np.all(rho <= R * (1 + tol) + 1e-9)
     # the trailing particle is pushed by the shell at the shell's speed
-    np.testing.assert_allclose(v[0, 0], speed, rtol=1e-6)
+    np.testing.assert_allclose(v[0, 0], speed, rtol=max(1e-6, tol))
     np.testing.assert_allclose(v[1, 0], 0.0, atol=1e-9)           # the leading one is not touched
     # what the shell gave the particle is what the particle exerted back on the shell
-    np.testing.assert_allclose(-shell_impulse[0], mass(r[0]) * speed, rtol=1e-6)
+    np.testing.assert_allclose(-shell_impulse[0], mass(r[0]) * speed, rtol=max(1e-6, tol))
 
 
 def test_wall_forces_equal_the_impulses_the_particles_received(tol):
