@@ -102,7 +102,9 @@ class SolverConfig(_Model):
     relative impulse change per sweep; max_sweeps per step; check_every: sweeps between
     convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial" or
     "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
-    "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z)."""
+    "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
+    overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
+    position projection leaves contacts alone; projection_passes: its sweeps (0: off)."""
     time_step: float = Field(2e-4, gt=0)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)
@@ -112,6 +114,8 @@ class SolverConfig(_Model):
     acceleration: Literal["nncg", "none"] = "nncg"
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
+    overlap_slop: float = Field(0.002, ge=0)
+    projection_passes: int = Field(2, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> "SolverConfig":
@@ -126,7 +130,9 @@ class SolverConfig(_Model):
         return SolverSettings(time_step=self.time_step, theta=self.theta,
                               tolerance=self.tolerance, max_sweeps=self.max_sweeps,
                               check_every=self.check_every, schedule=self.schedule,
-                              acceleration=self.acceleration, alert_ratio=self.alert_ratio, gravity=(0.0, 0.0, -self.gravity))
+                              acceleration=self.acceleration, alert_ratio=self.alert_ratio,
+                              gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
+                              projection_passes=self.projection_passes)
 
 
 class MaterialConfig(_Model):
@@ -190,7 +196,8 @@ class PrepareStage(_Model):
     spheres (0: enough to fill `layer_height_mm` at `packing_fraction`); sphere sizes follow the
     course's table (PHYSICS.md section 7) times `size_scale`. Spheres start at lattice sites
     (`lattice_jitter_mm` horizontal offsets) in a column up to `column_height_mm` and fall until
-    the fastest is below `settle_speed` or `max_settle_time` has passed; the top plate then
+    their mass-weighted rms speed sqrt(2 KE / M) is below `settle_speed` or `max_settle_time`
+    has passed; the top plate then
     vibrates (`vibration_amplitude_mm`, `vibration_frequency`, `vibration_duration`) and holds
     the layer at its height until settled (at most `max_hold_time`). The plate is servo-
     controlled: it never pushes with more than `plate_force_factor` times the sample's weight."""

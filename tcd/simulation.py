@@ -39,7 +39,9 @@ class SolverSettings:
     schedule: "serial", "coloured" or "auto" (serial on CPU, coloured on GPU); acceleration:
     "nncg" (nonsmooth nonlinear conjugate gradient on top of the serial Gauss-Seidel sweeps) or
     "none" (plain Gauss-Seidel; the coloured schedule is always plain); alert_ratio:
-    alert distance as a fraction of the smallest radius; gravity (m/s^2, vector)."""
+    alert distance as a fraction of the smallest radius; gravity (m/s^2, vector);
+    overlap_slop: interpenetration (fraction of the smallest diameter) left alone by the
+    end-of-step position projection; projection_passes: its sweeps per step (0: off)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -49,6 +51,8 @@ class SolverSettings:
     acceleration: str = "nncg"
     alert_ratio: float = 0.1
     gravity: tuple = (0.0, 0.0, -9.81)
+    overlap_slop: float = 0.002
+    projection_passes: int = 2
 
     def __post_init__(self):
         if not self.time_step > 0:
@@ -64,6 +68,9 @@ class SolverSettings:
         if self.acceleration not in ACCELERATIONS:
             raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
                              f"{self.acceleration!r}")
+        if not self.overlap_slop >= 0 or self.projection_passes < 0:
+            raise ValueError("overlap_slop and projection_passes must be >= 0, got "
+                             f"{self.overlap_slop}, {self.projection_passes}")
         if not self.alert_ratio > 0:
             raise ValueError(f"alert_ratio must be positive, got {self.alert_ratio}")
 
@@ -289,6 +296,9 @@ class Simulation:
         if bd.total[None] > 0:
             sk.bonds_finish(p, wl, bd, h, theta, t_end, *law_args, law.yield_stress)
         sk.integrate(p, h, theta)
+        if s.projection_passes > 0:
+            sk.project_overlaps(p, wl, ct, h, s.overlap_slop * 2.0 * self.r_min,
+                                s.projection_passes)
         sk.wall_forces(p, wl, ct, h)
         ck.save_history(ct, self.n)
         self.time = t_end

@@ -23,7 +23,7 @@ contact updates are plain load/store (no atomics): no two threads ever touch one
 
 import taichi as ti
 
-from . import laws
+from . import contacts, laws
 from .state import COLOUR_WORDS, MAX_COLOURS, Partition, capacity_class
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
@@ -579,6 +579,45 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
 def integrate(p: ti.template(), h: float, theta: float):
     for i in range(p.count[None]):
         p.x[i] += h * (theta * p.v[i] + (1.0 - theta) * p.v_old[i])
+
+
+@ti.kernel
+def project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float,
+                     slop: float, passes: ti.i32):
+    """Position-only removal of interpenetration beyond `slop` (m) at the end of the step.
+
+    The velocity-level Signorini condition never adds overlap in a converged step and never
+    corrects existing overlap (that would inject kinetic energy). Steps that stop at the sweep
+    cap (violent impacts) leave small overlaps that would otherwise accumulate, so after the
+    integration the step's frictional contacts are swept `passes` times (serial, canonical
+    order: deterministic) and each pair deeper than `slop` is moved apart along the line of
+    centres, in inverse proportion to the masses (a wall or a fixed sphere does not move),
+    down to `slop`. Velocities are untouched: no kinetic energy is created. Bonds are never
+    projected (their overlap is their elastic state). Walls are taken at their end-of-step
+    position."""
+    n = p.count[None]
+    nc = ct.total[None]
+    ti.loop_config(serialize=True)
+    for s in range(passes):
+        for k in range(nc):
+            i, j = ct.i[k], ct.j[k]
+            wi = p.inv_mass[i]
+            if j < n:
+                wj = p.inv_mass[j]
+                d = p.x[j] - p.x[i]
+                dist = d.norm()
+                gap = dist - p.radius[i] - p.radius[j]
+                if gap < -slop and dist > 0.0 and wi + wj > 0.0:
+                    nn = d / dist
+                    c = (-gap - slop) / (wi + wj)
+                    p.x[i] = p.x[i] - (c * wi) * nn
+                    p.x[j] = p.x[j] + (c * wj) * nn
+            else:
+                kw = j - n
+                gap, nn, valid = contacts.wall_geometry(wl, kw, p.x[i] - h * wl.velocity[kw],
+                                                        p.radius[i])
+                if valid == 1 and gap < -slop and wi > 0.0:
+                    p.x[i] = p.x[i] + (gap + slop) * nn
 
 
 @ti.kernel

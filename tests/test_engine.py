@@ -176,13 +176,35 @@ def test_frictionless_head_on_impact_conserves_momentum_and_stops_approach(tol):
     assert gap >= -1e-12 if tol < 1e-6 else gap >= -1e-8
 
 
-def test_existing_overlap_injects_no_energy():
+@pytest.mark.parametrize("passes", [0, 2])
+def test_existing_overlap_injects_no_energy(passes, tol):
     r = 0.003
     sim = Simulation([r], [[0, 0, r - 1e-4]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
-                     settings=tight(), domain=((-0.01,) * 3, (0.01,) * 3))
+                     settings=tight(projection_passes=passes),
+                     domain=((-0.01,) * 3, (0.01,) * 3))
+    slop = sim.settings.overlap_slop * 2 * r
     sim.step(50)
-    assert np.linalg.norm(sim.velocities()[0]) < 1e-9
-    assert abs(sim.positions()[0, 2] - (r - 1e-4)) < 1e-9      # neither pushed out nor sinking
+    assert np.linalg.norm(sim.velocities()[0]) < 1e-9           # no kinetic energy, ever
+    if passes == 0:
+        assert abs(sim.positions()[0, 2] - (r - 1e-4)) < max(1e-9, r * tol)   # stays put
+    else:
+        # the position projection removes the overlap down to the slop, without velocity
+        assert abs(sim.positions()[0, 2] - (r - slop)) < max(1e-9, r * tol)
+
+
+def test_position_projection_separates_an_overlapping_pair_by_inverse_mass(tol):
+    r1, r2 = 0.002, 0.004
+    ov = 2e-4
+    sim = Simulation([r1, r2], [[0, 0, 0], [r1 + r2 - ov, 0, 0]],
+                     settings=tight(gravity=(0, 0, 0)), domain=((-0.01,) * 3, (0.02,) * 3))
+    m1, m2 = mass(r1), mass(r2)
+    slop = sim.settings.overlap_slop * 2 * r1
+    sim.step()
+    x = sim.positions()
+    assert np.linalg.norm(sim.velocities()) < 1e-12                # positions only
+    np.testing.assert_allclose(x[1, 0] - x[0, 0], r1 + r2 - slop, rtol=tol)
+    # the centre of mass does not move: each sphere moves in inverse proportion to its mass
+    np.testing.assert_allclose(m1 * x[0, 0] + m2 * x[1, 0], m2 * (r1 + r2 - ov), rtol=tol)
 
 
 def test_spheres_inside_moving_cylinder_are_carried(tol):
