@@ -44,6 +44,29 @@ def layer_tops(x, r, layer) -> list[float]:
     return out
 
 
+def layer_interface(x, r, layer, lower: int, upper: int) -> float:
+    """Height of the interface between two layers (m): the plane z_b where the volume of the
+    lower layer's spheres above z_b equals the volume of the upper layer's spheres below it
+    (their interpenetration is split evenly). Bisection on a monotone function."""
+    lo_sel, up_sel = layer == lower, layer == upper
+    zl, rl = x[lo_sel, 2], r[lo_sel]
+    zu, ru = x[up_sel, 2], r[up_sel]
+    big = 1e9
+
+    def excess(z):
+        return (float(np.sum(slab_volume(zl, rl, z, big)))
+                - float(np.sum(slab_volume(zu, ru, -big, z))))
+    a = float(min((zl - rl).min(), (zu - ru).min()))
+    b = float(max((zl + rl).max(), (zu + ru).max()))
+    for _ in range(60):
+        m = 0.5 * (a + b)
+        if excess(m) > 0.0:
+            a = m
+        else:
+            b = m
+    return 0.5 * (a + b)
+
+
 def coordination_number(i, j, n: int) -> float:
     """Mean number of particle-particle contacts per particle (walls excluded)."""
     pp = np.count_nonzero(np.asarray(j) < n)

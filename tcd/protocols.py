@@ -221,20 +221,28 @@ class Prepare:
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
-        bounds = [0.0] + tops[:-1] + [H]          # measured interfaces, plates
+        nl = len(tops)
+        # layers are slabs between the plates and the equal-volume interfaces, so that the
+        # heights add up to the sample height and the per-layer packing fractions (all sphere
+        # volume inside each slab) average to the overall one
+        bounds = [0.0] + [obs.layer_interface(x, r, layer, L, L + 1) for L in range(nl - 1)] + [H]
         c = sim.contact_arrays()
         rho = np.hypot(x[:, 0], x[:, 1])
+        slack = 0.01 * 2 * float(r.min())         # 1 % of the smallest diameter
         return {
             "particles": int(sim.n),
-            "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(len(tops))],
+            "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(nl)],
             "layer_tops_mm": [1e3 * t for t in tops],
-            "layer_heights_mm": [1e3 * (bounds[k + 1] - bounds[k]) for k in range(len(tops))],
-            "packing_fraction_per_layer": [obs.packing_fraction(x[layer == L], r[layer == L], self.radius,
-                                                                bounds[L], bounds[L + 1]) for L in range(len(tops))],
+            "layer_interfaces_mm": [1e3 * b for b in bounds[1:-1]],
+            "layer_heights_mm": [1e3 * (bounds[k + 1] - bounds[k]) for k in range(nl)],
+            "packing_fraction_per_layer": [obs.packing_fraction(x, r, self.radius, bounds[L], bounds[L + 1])
+                                           for L in range(nl)],
             "packing_fraction": obs.packing_fraction(x, r, self.radius, 0.0, H),
             "coordination_number": obs.coordination_number(c["i"], c["j"], sim.n),
             "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),
-            "outside": int(np.count_nonzero((rho > self.radius) | (x[:, 2] < 0) | (x[:, 2] > H))),
+            # a sphere is outside when it pokes through a wall by more than 1 % of d_min
+            "outside": int(np.count_nonzero((rho + r > self.radius + slack) | (x[:, 2] - r < -slack)
+                                            | (x[:, 2] + r > H + slack))),
             "sample_height_mm": 1e3 * H,
             "target_sample_height_mm": self.cfg.sample_height_mm,
             "diameter_mm": 2e3 * self.radius,
