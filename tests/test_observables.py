@@ -1,0 +1,43 @@
+"""Reductions used by the prepared-sample summary, against closed forms."""
+import math
+
+import numpy as np
+
+from tcd import observables as obs
+
+
+def lattice(nx, nz, r, z0):
+    g = np.arange(nx) * 2 * r
+    xs = [(x, y, z0 + r + 2 * r * k) for x in g for y in g for k in range(nz)]
+    return np.array(xs, float)
+
+
+def test_layer_interface_of_two_stacked_lattices_is_their_contact_plane():
+    r = 0.001
+    lower = lattice(4, 3, r, 0.0)                 # tops at 6 r
+    upper = lattice(4, 2, r, 6 * r)
+    x = np.concatenate([lower, upper])
+    rad = np.full(len(x), r)
+    layer = np.array([0] * len(lower) + [1] * len(upper))
+    # (both volumes vanish quadratically at the plane: the root is found to ~1e-8 r)
+    assert abs(obs.layer_interface(x, rad, layer, 0, 1) - 6 * r) < 1e-8 * r
+    # interpenetrating layers: the upper one sunk by half a radius -> the plane splits it evenly
+    upper2 = upper - [0, 0, 0.5 * r]
+    x2 = np.concatenate([lower, upper2])
+    zb = obs.layer_interface(x2, rad, layer, 0, 1)
+    above = obs.slab_volume(lower[:, 2], rad[: len(lower)], zb, 1.0).sum()
+    below = obs.slab_volume(upper2[:, 2], rad[len(lower):], -1.0, zb).sum()
+    assert abs(above - below) < 1e-9 * above
+    assert 5.5 * r < zb < 6 * r
+
+
+def test_slab_packing_fractions_add_up():
+    rng = np.random.default_rng(3)
+    r = rng.uniform(0.001, 0.004, 300)
+    x = np.column_stack([rng.uniform(-0.02, 0.02, 300), rng.uniform(-0.02, 0.02, 300),
+                         rng.uniform(0.005, 0.045, 300)])
+    total = obs.packing_fraction(x, r, 0.03, 0.0, 0.05)
+    a = obs.packing_fraction(x, r, 0.03, 0.0, 0.02)
+    b = obs.packing_fraction(x, r, 0.03, 0.02, 0.05)
+    assert abs((0.02 * a + 0.03 * b) / 0.05 - total) < 1e-12
+    assert abs(total * math.pi * 0.03**2 * 0.05 - (4 / 3 * math.pi * r**3).sum()) < 1e-15
