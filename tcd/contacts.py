@@ -170,33 +170,17 @@ def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo
 
 
 @ti.kernel
-def contact_count(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
-                  ct: ti.template(), half_alert: float, alert: float, h: float):
+def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
+                 ct: ti.template(), half_alert: float, alert: float, h: float,
+                 fill: ti.template()):
+    """One walk of the cells around each particle: counts its candidate partners
+    (`fill` False, into ct.count) or writes them at ct.start (`fill` True) in canonical order:
+    particle partners ascending, then walls."""
     for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert, h)
-        m = 0
-        for cx in range(lo[0], hi[0] + 1):
-            for cy in range(lo[1], hi[1] + 1):
-                for cz in range(lo[2], hi[2] + 1):
-                    c = ti.Vector([cx, cy, cz])
-                    ci = cell_index(g, c)
-                    for s in range(g.cell_start[ci], g.cell_start[ci] + g.cell_count[ci]):
-                        j = g.items[s]
-                        if j > i:
-                            m += candidate(p, g, bd, i, j, c, lo, half_alert, alert, h)
-        for k in range(wl.count[None]):
-            gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
-            if valid == 1 and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
-                m += 1
-        ct.count[i] = m
-
-
-@ti.kernel
-def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
-                 ct: ti.template(), half_alert: float, alert: float, h: float):
-    for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert, h)
-        base = ct.start[i]
+        base = 0
+        if ti.static(fill):
+            base = ct.start[i]
         m = 0
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -207,23 +191,37 @@ def contact_fill(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
                         j = g.items[s]
                         if j > i:
                             if candidate(p, g, bd, i, j, c, lo, half_alert, alert, h) == 1:
-                                ct.j[base + m] = j
+                                if ti.static(fill):
+                                    ct.j[base + m] = j
                                 m += 1
-        # insertion sort of the particle partners: canonical order whatever the cell order
-        for a in range(1, m):
-            key = ct.j[base + a]
-            b = a - 1
-            while b >= 0 and ct.j[base + b] > key:
-                ct.j[base + b + 1] = ct.j[base + b]
-                b -= 1
-            ct.j[base + b + 1] = key
+        if ti.static(fill):
+            # insertion sort of the particle partners: canonical order whatever the cell order
+            for a in range(1, m):
+                key = ct.j[base + a]
+                b = a - 1
+                while b >= 0 and ct.j[base + b] > key:
+                    ct.j[base + b + 1] = ct.j[base + b]
+                    b -= 1
+                ct.j[base + b + 1] = key
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
             if valid == 1 and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
-                ct.j[base + m] = p.count[None] + k
+                if ti.static(fill):
+                    ct.j[base + m] = p.count[None] + k
                 m += 1
-        for a in range(m):
-            ct.i[base + a] = i
+        if ti.static(fill):
+            for a in range(m):
+                ct.i[base + a] = i
+        else:
+            ct.count[i] = m
+
+
+def contact_count(p, wl, g, bd, ct, half_alert: float, alert: float, h: float) -> None:
+    contact_pass(p, wl, g, bd, ct, half_alert, alert, h, False)
+
+
+def contact_fill(p, wl, g, bd, ct, half_alert: float, alert: float, h: float) -> None:
+    contact_pass(p, wl, g, bd, ct, half_alert, alert, h, True)
 
 
 @ti.kernel

@@ -298,18 +298,27 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
 
 
 @ti.func
-def item_list(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(), q, nb, n):
-    """0 or 1: interior of that half (walls belong to both); 2: boundary; -1: inactive."""
+def item_bodies(ct: ti.template(), bd: ti.template(), q, nb):
+    """Bodies (i, j) of item q (q < nb: bond q, else contact q - nb) and 1 if it is active
+    (broken bonds are not)."""
     i = 0
     j = 0
-    lst = 0
+    active = 1
     if q < nb:
         i, j = bd.i[q], bd.j[q]
         if bd.state[q] != INTACT:
-            lst = -1
+            active = 0
     else:
         i, j = ct.i[q - nb], ct.j[q - nb]
-    if lst == 0:
+    return i, j, active
+
+
+@ti.func
+def item_list(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(), q, nb, n):
+    """0 or 1: interior of that half (walls belong to both); 2: boundary; -1: inactive."""
+    i, j, active = item_bodies(ct, bd, q, nb)
+    lst = -1
+    if active == 1:
         lst = pt.part[i]
         if j < n:
             if pt.part[j] != lst:
@@ -411,15 +420,7 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
     overflow = 0
     ti.loop_config(serialize=True)
     for q in range(nb + nc):
-        i = 0
-        j = 0
-        active = 1
-        if q < nb:
-            i, j = bd.i[q], bd.j[q]
-            if bd.state[q] != INTACT:
-                active = 0
-        else:
-            i, j = ct.i[q - nb], ct.j[q - nb]
+        i, j, active = item_bodies(ct, bd, q, nb)
         col = -1
         if active == 1:
             for w in range(COLOUR_WORDS):
