@@ -147,8 +147,9 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
                 sim.set_walls(phase.walls)
                 step_in_phase = 0
                 if phase_idx == 0:          # every stage's first state is kept
-                    io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
-                                    stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
+                    k = io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
+                                        stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
+                    result.setdefault("stage_first_frame", {})[str(stage_idx)] = k
             bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
             bar.update(step_in_phase, sim.time)
             while step_in_phase < phase.steps:
@@ -188,7 +189,9 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
         # stage done: series, summary, prepared sample
         arrays = {k: np.asarray(v) for k, v in series.items()}
         if stage.kind == "shear":
-            numbers = proto.finish(sim, Phase.from_json(result["last_phase"]), arrays)
+            first = result.get("stage_first_frame", {}).get(str(stage_idx))
+            x_start = io.read_frame(states, first)["particles/x"] if first is not None else None
+            numbers = proto.finish(sim, Phase.from_json(result["last_phase"]), arrays, x_start)
             attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
                      "smoothing_window": stage.smoothing_window_mm * 1e-3}
         else:

@@ -1,0 +1,95 @@
+"""Scaled-down twin of the paper's study (scenarios/twin.toml): the invariants of the prepared
+sample (issue 5) and of the Leutner shear (issue 6), on a few hundred spheres.
+
+The twin is the paper's sample with every length scaled (sizes x 0.4, 24 mm mould, two 8 mm
+layers, 16 mm sample) at the paper's time step; only the vibration (scaled with the sizes) and the
+shear rate (faster, so that the test runs in about a minute) differ. It is run once per session
+through `tcd run`, and every check reads the files a user would read.
+"""
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from tcd import cli, io
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    out = tmp_path_factory.mktemp("twin") / "out"
+    assert cli.main(["run", str(ROOT / "scenarios" / "twin.toml"), "--out", str(out)]) == 0
+    sample = json.loads((out / "sample_1" / "summary.json").read_text())
+    return out, sample["stages"]["0:prepare"], sample["stages"]["1:shear"]
+
+
+# -- issue 5: the prepared sample ----------------------------------------------------------------
+def test_twin_sample_dimensions_and_layers(twin):
+    _, prep, _ = twin
+    assert prep["diameter_mm"] == pytest.approx(24.0)
+    # the plate stops where the rigid grains jam: the twin's narrow mould (3.75 largest
+    # diameters across, against 9.4 in the paper's) packs a little looser near its wall
+    assert 16.0 - 0.05 <= prep["sample_height_mm"] <= 16.0 * 1.05
+    # two layers of 8 mm within the scaled tolerance (2 mm in 60 mm for the paper's sample)
+    for h in prep["layer_heights_mm"]:
+        assert h == pytest.approx(8.0, abs=2.0 * 8.0 / 60.0 + 0.3)
+    assert len(prep["particles_per_layer"]) == 2 and min(prep["particles_per_layer"]) > 50
+
+
+def test_twin_packing_overlap_and_containment(twin):
+    _, prep, _ = twin
+    assert 0.57 <= prep["packing_fraction"] <= 0.61
+    assert prep["outside"] == 0
+    assert prep["max_overlap_ratio"] < 0.01
+    assert prep["coordination_number"] > 3.0
+
+
+def test_twin_prepared_file_matches_summary(twin):
+    out, prep, _ = twin
+    arrays, meta = io.load_checkpoint(out / "sample_1" / "prepared.h5")
+    assert len(arrays["particles/radius"]) == prep["particles"]
+    x, r = arrays["particles/x"], arrays["particles/radius"]
+    R = 0.5 * prep["diameter_mm"] * 1e-3
+    slack = 0.01 * 2 * r.min()
+    assert np.all(np.hypot(x[:, 0], x[:, 1]) + r <= R + slack)
+    assert np.all(x[:, 2] - r >= -slack)
+    assert np.all(x[:, 2] + r <= prep["sample_height_mm"] * 1e-3 + slack)
+
+
+# -- issue 6: the shear ---------------------------------------------------------------------------
+def test_twin_upper_half_moves_with_the_ring(twin):
+    _, _, shear = twin
+    assert shear["upper_mean_dx_over_ring"] > 0.8
+    assert abs(shear["lower_mean_dx_over_ring"]) < 0.2
+
+
+def test_twin_bonds_break_most_near_the_plane(twin):
+    """Broken bonds are commoner near the shear plane (within a quarter ring height) than far
+    from it (beyond half a ring height). The twin's bonds are brittle (their yield displacement
+    scales with the square of the sizes), so its failure is diffuse: most of its bonds break."""
+    out, _, shear = twin
+    f = io.read_frame(out / "sample_1" / "states.h5", -1)
+    state, i, j = f["bonds/state"], f["bonds/i"], f["bonds/j"]
+    x = f["particles/x"]
+    z = np.where(state != 0, f["bonds/broken_position"][:, 2], 0.5 * (x[i, 2] + x[j, 2]))
+    z_i = shear["z_interface_mm"] * 1e-3
+    ring = 4.0 * shear["near_plane_band_mm"] * 1e-3
+    near, far = np.abs(z - z_i) < 0.25 * ring, np.abs(z - z_i) > 0.5 * ring
+    broken = state != 0
+    assert shear["bonds_broken"] == broken.sum() > 0.05 * len(state)
+    assert near.sum() > 20 and far.sum() > 20
+    assert broken[near].mean() > broken[far].mean() + 0.1
+
+
+def test_twin_stress_rises_then_falls(twin):
+    out, _, shear = twin
+    s = io.read_series(out / "sample_1" / "shear_series.h5")
+    d, tau = np.asarray(s["displacement"]), np.asarray(s["shear_stress"])
+    k = shear["peak_index"]
+    assert 0.1 * d[-1] < d[k] < 0.9 * d[-1]            # the peak is inside the test
+    assert shear["tau_peak_MPa"] > 0
+    early = tau[d < 0.25 * d[k]].mean()
+    assert early < 0.6 * shear["tau_peak_MPa"] * 1e6    # a rise
+    assert shear["residual_MPa"] < 0.9 * shear["tau_peak_MPa"]   # then a fall
