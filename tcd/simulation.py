@@ -187,7 +187,8 @@ class Simulation:
         self.cell_size = float(cell_size) if cell_size else 2.0 * (2.0 * self.r_min + self.alert)
         self.cell_size = max(self.cell_size, 1e-9)
         self.grid = self._make_grid(self._grid_capacity_estimate(radius))
-        cap = contact_capacity if contact_capacity else max(64, 8 * n)
+        # a settled bed has about 3 contacts per sphere (walls included): the buffer grows if not
+        cap = contact_capacity if contact_capacity else max(64, 4 * n)
         self.contacts = acquire(Contacts, cap, self.particles.capacity)
         self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.colours = None
@@ -203,11 +204,12 @@ class Simulation:
         if ncells > 64_000_000:
             raise ValueError(f"broad-phase grid of {dims.tolist()} cells is too large: enlarge "
                              f"cell_size or shrink the domain")
-        grid = acquire(Grid, max(capacity, ncells))
-        if grid.cell_capacity < ncells:
-            release(grid)
-            grid = Grid(max(capacity, ncells), ncells)
-        grid.configure(lo, self.cell_size, dims)
+        # about 8 buckets per particle, never more than the cells (a power of two: c mod 2^k)
+        buckets = 64
+        while buckets < min(8 * self.n, ncells):
+            buckets *= 2
+        grid = acquire(Grid, capacity, buckets)
+        grid.configure(lo, self.cell_size, dims, buckets)
         return grid
 
     def close(self) -> None:

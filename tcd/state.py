@@ -21,10 +21,15 @@ MAX_COLOURS = 32 * COLOUR_WORDS
 
 
 def capacity_class(n: int, minimum: int = 64) -> int:
-    """Smallest power of two >= max(n, minimum)."""
+    """Smallest size >= max(n, minimum) of the form 2^k x (1, 1.25, 1.5 or 1.75): classes close
+    enough that a container wastes at most a quarter of its slots, few enough that the pool
+    (and the kernels compiled for it) is reused by simulations of similar sizes."""
     c = minimum
     while c < n:
         c *= 2
+    for q in (5, 6, 7):
+        if c > minimum and c // 8 * q >= n:
+            return c // 8 * q
     return c
 
 
@@ -145,34 +150,37 @@ class WallFields:
 
 @ti.data_oriented
 class Grid:
-    """Uniform grid for the broad phase (counting sort of particles by the cells their
-    enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims, ncells;
-    layer_lo, layer_hi: z layers touched this step (cells are numbered z-slowest);
-    `cell_capacity` cells and `capacity` particle-cell incidences."""
-    pool_args = ()
-
+    """Hashed uniform grid for the broad phase (counting sort of particles by the cells their
+    enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims and ncells
+    of the virtual grid, buckets (a power of two <= `cell_capacity`): cell c goes to bucket
+    c mod buckets. Per bucket: cell_count, cell_start (CSR); per particle-cell incidence
+    (`capacity`): items (particle) and keys (cell)."""
     def __init__(self, capacity: int, cell_capacity: int | None = None):
         self.capacity = capacity
         cc = self.cell_capacity = cell_capacity or capacity
+        self.pool_args = (cc,)
         self.cell_count, self.cell_start = _int(cc), _int(cc + 1)
-        self.items = _int(capacity)
+        self.items, self.keys = _int(capacity), _int(capacity)
         self.origin = ti.Vector.field(3, backend.real(), shape=())
         self.dims = ti.Vector.field(3, ti.i32, shape=())
         self.inv_cell = _scalar(backend.real())
         self.ncells = _scalar()
-        self.layer_lo, self.layer_hi = _scalar(), _scalar()   # occupied z layers (slab)
+        self.buckets = _scalar()
 
     def reset(self):
         self.ncells[None] = 0
 
-    def configure(self, origin, cell: float, dims) -> None:
+    def configure(self, origin, cell: float, dims, buckets: int) -> None:
         ncells = int(np.prod(dims))
-        if ncells > self.cell_capacity:
-            raise ValueError("grid has fewer cells than requested")
+        if ncells >= 2**31:
+            raise ValueError("grid has too many cells for 32-bit cell indices")
+        if buckets > self.cell_capacity or buckets & (buckets - 1):
+            raise ValueError(f"bucket count {buckets} is not a power of two <= {self.cell_capacity}")
         self.origin[None] = [float(o) for o in origin]
         self.dims[None] = [int(d) for d in dims]
         self.inv_cell[None] = 1.0 / float(cell)
         self.ncells[None] = ncells
+        self.buckets[None] = int(buckets)
 
 
 @ti.data_oriented
