@@ -132,12 +132,19 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 
 
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
-          tolerance: float = 1e-4, seed: int = 1) -> dict:
+          tolerance: float = 1e-4, seed: int = 1, sample: str | None = None) -> dict:
     """The shear stage (bonds, split rings, 50 mm/min) on a prepared sample, for `time`
-    simulated seconds (the full test is 3 s: 15000 steps)."""
+    simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
+    (`prepared.h5` of a `tcd run`, 150 mm mould) instead of the generated one; `particles`
+    is then its own count."""
     _init(arch, precision)
     from .simulation import BondLaw, Simulation, SolverSettings
-    arrays = bench_sample(particles, seed, tolerance)
+    if sample:
+        from . import io
+        arrays, _ = io.load_checkpoint(sample)
+        particles = len(arrays["particles/radius"])
+    else:
+        arrays = bench_sample(particles, seed, tolerance)
     r, x = arrays["particles/radius"], arrays["particles/x"]
     R = CYLINDER_RADIUS
     height = float((x[:, 2] + r).max())

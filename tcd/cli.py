@@ -213,6 +213,10 @@ def cmd_bench(args) -> int:
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed)
+        if getattr(args, "sample", None):
+            if not Path(args.sample).is_file():
+                raise UsageError(f"--sample {args.sample}: no such file")
+            options["sample"] = args.sample
         if args.time is not None:       # else the benchmark's own duration
             options["time"] = args.time
         result = run(**options)
@@ -307,6 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
         b.add_argument("--tolerance", type=_positive_float, default=1e-4)
         b.add_argument("--seed", type=int, default=1)
         b.add_argument("--json", action="store_true", help="print JSON instead of a table")
+        if name == "shear":
+            b.add_argument("--sample", default=None, metavar="FILE.h5",
+                           help="a prepared sample (prepared.h5 of a run) instead of a generated one")
         b.set_defaults(handler=cmd_bench)
     b = bench_sub.add_parser("scaling", help="cost per particle step against particle count")
     b.add_argument("--sizes", default="1000,3000,10000,30000,100000", metavar="N,N,...")
