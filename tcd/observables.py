@@ -78,21 +78,44 @@ def max_overlap(gap) -> float:
     return float(max(0.0, -gap.min())) if gap.size else 0.0
 
 
-def smooth(y, x, window: float) -> np.ndarray:
-    """Centred moving average of y over a window of width `window` in x units (x sorted);
-    near the ends the window shrinks to the points available."""
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    if window <= 0 or len(y) < 2:
+def smooth(y, x, window) -> np.ndarray:
+    """Centred moving average of `y` over ``|x_j - x_i| <= window / 2`` (window in x units).
+
+    x may be non-uniform (sorted internally when it is not ascending); near the ends the
+    average uses the points available. NaN values of y are left out of the averages. A window
+    <= 0 returns a copy of y.
+    """
+    y = np.asarray(y, dtype=float)
+    x = np.asarray(x, dtype=float)
+    if y.shape != x.shape or y.ndim != 1:
+        raise ValueError(f"smooth: x and y must be 1-D of the same length, got {x.shape} "
+                         f"and {y.shape}")
+    if not window > 0 or y.size == 0:
         return y.copy()
-    c = np.concatenate([[0.0], np.cumsum(y)])
-    lo = np.searchsorted(x, x - 0.5 * window, side="left")
-    hi = np.searchsorted(x, x + 0.5 * window, side="right")
-    return (c[hi] - c[lo]) / (hi - lo)
+    order = np.argsort(x, kind="stable")
+    xs, ys = x[order], y[order]
+    finite = np.isfinite(ys)
+    csum = np.concatenate([[0.0], np.cumsum(np.where(finite, ys, 0.0))])
+    ccount = np.concatenate([[0], np.cumsum(finite)])
+    lo = np.searchsorted(xs, xs - 0.5 * window, side="left")
+    hi = np.searchsorted(xs, xs + 0.5 * window, side="right")
+    count = ccount[hi] - ccount[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = (csum[hi] - csum[lo]) / count
+    out = np.empty_like(mean)
+    out[order] = np.where(count > 0, mean, np.nan)
+    return out
 
 
-def peak_of(displacement, stress, window: float):
-    """(peak stress, displacement at peak, index) of the smoothed stress curve."""
-    s = smooth(stress, displacement, window)
-    k = int(np.argmax(s))
-    return float(s[k]), float(np.asarray(displacement)[k]), k
+def peak_of(displacement, stress, window) -> tuple[float, float, int]:
+    """(peak of the smoothed stress, displacement there, its index).
+
+    Among equal maxima the last index wins, so a monotonic curve peaks at its last point.
+    """
+    displacement = np.asarray(displacement, dtype=float)
+    smoothed = smooth(stress, displacement, window)
+    if smoothed.size == 0 or not np.any(np.isfinite(smoothed)):
+        raise ValueError("peak_of: no finite stress values")
+    top = np.nanmax(smoothed)
+    index = int(np.flatnonzero(smoothed == top)[-1])
+    return float(top), float(displacement[index]), index
