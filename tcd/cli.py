@@ -128,7 +128,7 @@ def cmd_run(args) -> int:
                            "--out directory")
             raise UsageError(f"{out_dir} already holds results ({shown}{more}); {advice}")
     from .runner import run_scenario
-    summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True)
+    summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True, jobs=args.jobs)
     print(f"tcd: {scenario.name}: results in {out_dir}")
     if summary:
         print(format_table(summary))
@@ -262,6 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     _backend_options(p, what=" (overrides [backend] of the scenario)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last checkpoint")
+    p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
+                   help="samples run at once, one process each (default 1; the CPU solver "
+                        "uses one core per sample)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint)")

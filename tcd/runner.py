@@ -73,30 +73,60 @@ class Progress:
             self.bar.close()
 
 
-def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = True) -> dict:
-    """Run every sample of `scenario` into `out_dir`; returns the summary."""
+def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = True,
+                 jobs: int = 1) -> dict:
+    """Run every sample of `scenario` into `out_dir`; returns the summary.
+
+    jobs > 1 runs that many samples at once, each in its own process (the CPU solver uses one
+    core per sample, so a 2-core machine prepares and shears two samples in the time of one).
+    Each sample's numbers depend only on its seed: they are the same for any `jobs`."""
     out = pathlib.Path(out_dir)
-    backend.init(scenario.backend.arch, scenario.backend.precision)
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     if resume:
         if not out.is_dir() or not any(out.glob("sample_*/checkpoint.h5")) and not any(out.glob("sample_*/summary.json")):
             raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out / "scenario.toml") as tmp:
         pathlib.Path(tmp).write_text(scenario.text)
-    samples, wall = [], {}
     t_start = time.perf_counter()
+    done = {}
     for seed in scenario.seeds:
-        sample_dir = out / f"sample_{seed}"
-        done = sample_dir / "summary.json"
-        if resume and done.exists():
-            s = json.loads(done.read_text())
-        else:
-            s = run_sample(scenario, seed, sample_dir, resume=resume, progress=progress)
-        samples.append(s)
+        path = out / f"sample_{seed}" / "summary.json"
+        if resume and path.exists():
+            done[seed] = json.loads(path.read_text())
+    pending = [seed for seed in scenario.seeds if seed not in done]
+    if jobs > 1 and len(pending) > 1:
+        import concurrent.futures
+        import multiprocessing
+        ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
+        with concurrent.futures.ProcessPoolExecutor(max_workers=min(jobs, len(pending)),
+                                                    mp_context=ctx) as pool:
+            futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
+                                         scenario.backend.arch, scenario.backend.precision,
+                                         seed, str(out / f"sample_{seed}"), resume, progress)
+                       for seed in pending}
+            for seed, future in futures.items():
+                done[seed] = future.result()
+    else:
+        backend.init(scenario.backend.arch, scenario.backend.precision)
+        for seed in pending:
+            done[seed] = run_sample(scenario, seed, out / f"sample_{seed}", resume=resume,
+                                    progress=progress)
+    samples = [done[seed] for seed in scenario.seeds]
     summary = summarize(scenario, samples)
     summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
+    summary["jobs"] = jobs
     io.write_json(out / "summary.json", summary)
     return summary
+
+
+def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress) -> dict:
+    """One sample in a worker process (see run_scenario's `jobs`)."""
+    from .config import parse_scenario
+    scn = parse_scenario(text, source).with_overrides(arch=arch, precision=precision)
+    backend.init(arch, precision)
+    return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
 def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
@@ -258,7 +288,7 @@ def summarize(scn, samples: list) -> dict:
         rel = {"tau_peak": mean["tau_peak_MPa"] / PAPER_EXPERIMENT["tau_peak_MPa"] - 1.0,
                "d_peak": mean["d_peak_mm"] / PAPER_EXPERIMENT["d_peak_mm"] - 1.0}
     wall = {f"sample_{s['seed']}": s.get("wall_time_s", {}) for s in samples}
-    return {"scenario": scn.name, "tcd_version": __version__, "arch": backend.arch(),
-            "precision": backend.precision(), "samples": samples, "mean": mean, "std": std,
+    return {"scenario": scn.name, "tcd_version": __version__, "arch": scn.backend.arch,
+            "precision": scn.backend.precision, "samples": samples, "mean": mean, "std": std,
             "experiment": PAPER_EXPERIMENT, "paper_simulation": PAPER_SIMULATION,
             "relative_error": rel, "wall_time_s": wall}

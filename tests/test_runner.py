@@ -78,14 +78,21 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert cli.main(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
 
 
-def test_same_scenario_same_numbers(micro_run, tmp_path):
+def test_same_scenario_same_numbers_with_parallel_samples(micro_run, tmp_path):
+    """Seed 3 again, this time next to seed 4 in two worker processes (--jobs 2): seed 3's
+    numbers are bit-identical to the single-process run."""
     scenario, out = micro_run
+    two = tmp_path / "two.toml"
+    two.write_text(MICRO.replace("seeds = [3]", "seeds = [3, 4]"))
     again = tmp_path / "again"
-    assert cli.main(["run", str(scenario), "--out", str(again)]) == 0
+    assert cli.main(["run", str(two), "--out", str(again), "--jobs", "2"]) == 0
     a, _ = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
     b, _ = io.load_checkpoint(again / "sample_3" / "checkpoint.h5")
     for key in ("particles/x", "particles/v", "bonds/state", "bonds/impulse"):
         assert np.array_equal(a[key], b[key]), key
+    summary = json.loads((again / "summary.json").read_text())
+    assert [s["seed"] for s in summary["samples"]] == [3, 4] and summary["jobs"] == 2
+    assert summary["samples"][1]["particles"] > 0 and (again / "sample_4" / "prepared.h5").exists()
 
 
 def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
