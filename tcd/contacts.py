@@ -59,8 +59,10 @@ def box_cells(g: ti.template(), p: ti.template(), i, half_alert, h):
 
 
 @ti.kernel
-def grid_count(p: ti.template(), g: ti.template(), half_alert: float, h: float):
-    """Per-bucket counts of particle-cell incidences."""
+def grid_walk(p: ti.template(), g: ti.template(), half_alert: float, h: float,
+              scatter: ti.template()):
+    """One walk of every particle's cells: per-bucket counts of the incidences (`scatter`
+    False), or (True, after grid_scan) each incidence written at its bucket's slots."""
     for c in range(g.buckets[None]):
         g.cell_count[c] = 0
     for i in range(p.count[None]):
@@ -69,7 +71,19 @@ def grid_count(p: ti.template(), g: ti.template(), half_alert: float, h: float):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
                     c = cell_index(g, ti.Vector([cx, cy, cz]))
-                    ti.atomic_add(g.cell_count[bucket_of(g, c)], 1)
+                    b = bucket_of(g, c)
+                    slot = ti.atomic_add(g.cell_count[b], 1)
+                    if ti.static(scatter):
+                        g.items[g.cell_start[b] + slot] = i
+                        g.keys[g.cell_start[b] + slot] = c
+
+
+def grid_count(p, g, half_alert: float, h: float) -> None:
+    grid_walk(p, g, half_alert, h, False)
+
+
+def grid_scatter(p, g, half_alert: float, h: float) -> None:
+    grid_walk(p, g, half_alert, h, True)
 
 
 @ti.kernel
@@ -84,33 +98,9 @@ def exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32) -> ti.
     return s
 
 
-@ti.kernel
-def grid_scan(g: ti.template()) -> ti.i32:
+def grid_scan(g) -> int:
     """cell_start over the buckets; returns the number of particle-cell incidences."""
-    s = 0
-    nb = g.buckets[None]
-    ti.loop_config(serialize=True)
-    for k in range(nb):
-        g.cell_start[k] = s
-        s += g.cell_count[k]
-    g.cell_start[nb] = s
-    return s
-
-
-@ti.kernel
-def grid_scatter(p: ti.template(), g: ti.template(), half_alert: float, h: float):
-    for c in range(g.buckets[None]):
-        g.cell_count[c] = 0
-    for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert, h)
-        for cx in range(lo[0], hi[0] + 1):
-            for cy in range(lo[1], hi[1] + 1):
-                for cz in range(lo[2], hi[2] + 1):
-                    c = cell_index(g, ti.Vector([cx, cy, cz]))
-                    b = bucket_of(g, c)
-                    slot = g.cell_start[b] + ti.atomic_add(g.cell_count[b], 1)
-                    g.items[slot] = i
-                    g.keys[slot] = c
+    return exclusive_scan(g.cell_count, g.cell_start, g.nbuckets)
 
 
 @ti.func

@@ -226,6 +226,14 @@ def _default_version(tcd_version: str) -> str:
     return str(getattr(sys.modules.get("tcd"), "__version__", ""))
 
 
+def _write_header(f: h5py.File, kind: str, tcd_version: str = "") -> None:
+    """The attributes every tcd file starts with: schema, kind, writer version, creation time."""
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.attrs["tcd_file"] = kind
+    f.attrs["tcd_version"] = _default_version(tcd_version)
+    f.attrs["created"] = _now_iso()
+
+
 def _check_dataset_key(key, where: str, *, need_group: bool) -> str:
     if not isinstance(key, str):
         raise ValueError(f"{where}: key {key!r} is not a string")
@@ -414,11 +422,8 @@ def append_frame(path, frame: dict, *, time, step, stage, scenario_text: str = "
         index = 0
         with atomic_path(path) as tmp:
             with h5py.File(tmp, "w") as f:
-                f.attrs["schema_version"] = SCHEMA_VERSION
-                f.attrs["tcd_file"] = FILE_STATES
-                f.attrs["tcd_version"] = _default_version(tcd_version)
+                _write_header(f, FILE_STATES, tcd_version)
                 f.attrs["scenario"] = str(scenario_text)
-                f.attrs["created"] = _now_iso()
                 f.create_group("frames")
                 _write_frame(f, index, prepared, time, step, stage)
     return index
@@ -506,10 +511,7 @@ def write_series(path_h5, series: dict, *, units: dict | None = None, attrs: dic
 
     with atomic_path(path_h5) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["tcd_file"] = FILE_SERIES
-            f.attrs["tcd_version"] = _default_version("")
-            f.attrs["created"] = _now_iso()
+            _write_header(f, FILE_SERIES)
             for name, value in root_attrs.items():
                 f.attrs[name] = value
             for key, arr in arrays.items():
@@ -562,10 +564,7 @@ def save_checkpoint(path, arrays: dict, meta: dict) -> None:
         raise ValueError(f"{where}: meta is not JSON serialisable: {exc}") from exc
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["tcd_file"] = FILE_CHECKPOINT
-            f.attrs["tcd_version"] = _default_version("")
-            f.attrs["created"] = _now_iso()
+            _write_header(f, FILE_CHECKPOINT)
             f.attrs["meta"] = meta_text
             group = f.create_group("arrays")
             for key, arr in prepared.items():

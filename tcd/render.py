@@ -46,6 +46,7 @@ import numpy as np
 import taichi as ti
 
 from . import backend
+from .contacts import exclusive_scan
 
 PLANE, CYLINDER = 0, 1
 MAX_WALLS = 16
@@ -369,20 +370,6 @@ def _grid_count(b: ti.template()):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
                     ti.atomic_add(b.cell_count[_cell_index(b, ti.Vector([cx, cy, cz]))], 1)
-
-
-@ti.kernel
-def _grid_scan(b: ti.template()) -> ti.i32:
-    """cell_start = exclusive prefix sum of cell_count; returns the item total."""
-    dims = b.grid_dims[None]
-    n = dims[0] * dims[1] * dims[2]
-    s = 0
-    ti.loop_config(serialize=True)
-    for c in range(n):
-        b.cell_start[c] = s
-        s += b.cell_count[c]
-    b.cell_start[n] = s
-    return s
 
 
 @ti.kernel
@@ -711,13 +698,13 @@ class Renderer:
                      background, width, height)
         if n:
             _grid_count(b)
-            total = _grid_scan(b)
+            total = exclusive_scan(b.cell_count, b.cell_start, ncells)
             if total > b.item_capacity:     # numpy estimate was short (rounding): grow, redo
                 b = self._ensure(n, ncells, total, height, width)
                 self._upload(b, x, radius, colors, origin, cell, dims, camera, section, walls,
                              background, width, height)
                 _grid_count(b)
-                _grid_scan(b)
+                exclusive_scan(b.cell_count, b.cell_start, ncells)
             _grid_scatter(b)
         _trace_image(b)
         return b.image.to_numpy()[:height, :width]

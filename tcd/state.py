@@ -180,7 +180,7 @@ class Grid:
         self.dims[None] = [int(d) for d in dims]
         self.inv_cell[None] = 1.0 / float(cell)
         self.ncells[None] = ncells
-        self.buckets[None] = int(buckets)
+        self.buckets[None] = self.nbuckets = int(buckets)
 
 
 @ti.data_oriented
