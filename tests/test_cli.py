@@ -48,8 +48,8 @@ def stub(monkeypatch):
 def runner_calls(stub):
     calls = []
 
-    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
-        calls.append(dict(scenario=scenario, out_dir=out_dir, resume=resume, progress=progress))
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
+        calls.append(dict(scenario=scenario, out_dir=out_dir, resume=resume, progress=progress, jobs=jobs))
         return {"scenario": scenario.name, "tau_peak_MPa": 0.8371234567}
     stub("runner", run_scenario=run_scenario)
     return calls
@@ -93,9 +93,16 @@ def test_run_passes_scenario_overrides_and_default_out_dir(scenario_file, tmp_pa
     assert call["scenario"].name == "cli-test"
     assert (call["scenario"].backend.arch, call["scenario"].backend.precision) == ("gpu", "f32")
     assert str(call["out_dir"]) == "runs/cli-test"
-    assert call["resume"] is False and call["progress"] is True
+    assert call["resume"] is False and call["progress"] is True and call["jobs"] == 1
     out = capsys.readouterr().out
     assert "runs/cli-test" in out and "0.837123" in out
+
+
+def test_run_passes_jobs_and_refuses_zero(scenario_file, tmp_path, capsys, runner_calls):
+    assert main(["run", str(scenario_file), "--out", str(tmp_path / "o"), "--jobs", "2"]) == 0
+    assert runner_calls[0]["jobs"] == 2
+    assert main(["run", str(scenario_file), "--out", str(tmp_path / "p"), "--jobs", "0"]) == 2
+    assert "positive integer" in capsys.readouterr().err and len(runner_calls) == 1
 
 
 def test_run_refuses_to_overwrite_results(scenario_file, tmp_path, capsys, runner_calls):
@@ -139,7 +146,7 @@ def test_resume_without_a_run_directory(scenario_file, tmp_path, capsys, runner_
 
 def test_resume_without_checkpoint_reports_the_runner_message(scenario_file, tmp_path, capsys,
                                                               stub):
-    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
         raise FileNotFoundError(f"{out_dir}: nothing to resume (no checkpoint found)")
     stub("runner", run_scenario=run_scenario)
     (tmp_path / "empty").mkdir()
@@ -149,7 +156,7 @@ def test_resume_without_checkpoint_reports_the_runner_message(scenario_file, tmp
 
 
 def test_interrupted_run_says_how_to_resume(scenario_file, tmp_path, capsys, stub):
-    def run_scenario(scenario, out_dir, *, resume=False, progress=True):
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
         raise KeyboardInterrupt
     stub("runner", run_scenario=run_scenario)
     out_dir = tmp_path / "run"
