@@ -268,7 +268,10 @@ class Shear:
         c = self.cfg
         x, r = sim.positions(), sim.radii()
         R = float(np.max([w.radius for w in sim.walls if w.kind == "cylinder"]))
-        H = float(max(w.position(t)[2] for w in sim.walls if w.kind == "plane" and w.direction[2] < 0))
+        plate = float(max(w.position(t)[2] for w in sim.walls if w.kind == "plane" and w.direction[2] < 0))
+        # the sample is confined: the top plate rests on its highest grain (vibration may have
+        # packed the grains below the mould's height; a gap would let the bonded sample jump)
+        H = min(plate, float((x[:, 2] + r).max()))
         z_i = 0.5 * H
         half_gap = 0.5 * c.gap_mm * 1e-3
         f = c.wall_friction
@@ -289,7 +292,8 @@ class Shear:
         nb = sim.create_bonds(self.scn.bond.gap_tolerance_mm * 1e-3)
         steps = int(round(self.displacement / self.velocity / self.h))
         return Phase("shear", walls, steps, info={"z_interface": z_i, "radius": R, "t0": t,
-                                                  "bonds_created": nb}), sim
+                                                  "bonds_created": nb, "sample_height": H,
+                                                  "mould_height": plate}), sim
 
     def before_step(self, sim, phase) -> None:
         pass
@@ -334,6 +338,7 @@ class Shear:
             "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),
             "bonds_broken_tension": int(np.count_nonzero(state == 1)),
             "bonds_broken_shear": int(np.count_nonzero(state == 2)),
+            "sample_height_mm": phase.info.get("sample_height", 2 * z_i) * 1e3,
             "z_interface_mm": z_i * 1e3, "near_plane_band_mm": band * 1e3,
             "bonds_near_plane_fraction": float(near.mean()) if len(near) else 0.0,
             "broken_near_plane_fraction": float(near[broken].mean()) if broken.any() else 0.0,
