@@ -151,8 +151,8 @@ class WallFields:
 @ti.data_oriented
 class Grid:
     """Hashed uniform grid for the broad phase (counting sort of particles by the cells their
-    enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims and ncells
-    of the virtual grid, buckets (a power of two <= `cell_capacity`): cell c goes to bucket
+    enlarged bounding box overlaps). Runtime shape: origin (m), inv_cell (1/m), dims of the
+    virtual grid, buckets (a power of two <= `cell_capacity`): cell c goes to bucket
     c mod buckets. Per bucket: cell_count, cell_start (CSR); per particle-cell incidence
     (`capacity`): items (particle) and keys (cell)."""
     def __init__(self, capacity: int, cell_capacity: int | None = None):
@@ -164,11 +164,10 @@ class Grid:
         self.origin = ti.Vector.field(3, backend.real(), shape=())
         self.dims = ti.Vector.field(3, ti.i32, shape=())
         self.inv_cell = _scalar(backend.real())
-        self.ncells = _scalar()
         self.buckets = _scalar()
 
     def reset(self):
-        self.ncells[None] = 0
+        self.buckets[None] = self.nbuckets = 0
 
     def configure(self, origin, cell: float, dims, buckets: int) -> None:
         ncells = int(np.prod(dims))
@@ -179,7 +178,6 @@ class Grid:
         self.origin[None] = [float(o) for o in origin]
         self.dims[None] = [int(d) for d in dims]
         self.inv_cell[None] = 1.0 / float(cell)
-        self.ncells[None] = ncells
         self.buckets[None] = self.nbuckets = int(buckets)
 
 
