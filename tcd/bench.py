@@ -96,16 +96,16 @@ def _sample_path(particles: int, seed: int):
 
 
 def bench_sample(particles: int, seed: int, tolerance: float):
-    """A confined two-layer sample for the shear benchmark, generated once and cached under
-    runs/bench/: a quick pour (looser solver, larger step) of both courses into the 150 mm
-    mould, then a top plate at the bed surface. Good enough to time the shear stage; the
-    paper's preparation protocol is `tcd run scenarios/prepare.toml`."""
+    """Path of a confined two-layer sample for the shear benchmark, generated once and cached
+    under runs/bench/ (same file format as a `tcd run` prepared.h5): a quick pour (looser
+    solver, larger step) of both courses into the 150 mm mould, then a top plate at the bed
+    surface. Good enough to time the shear stage; the paper's preparation protocol is
+    `tcd run scenarios/prepare.toml`."""
     from . import io
     from .simulation import Simulation, SolverSettings
     path = _sample_path(particles, seed)
-    if path.exists():
-        arrays, meta = io.load_checkpoint(path)
-        return arrays
+    if path.exists() and "domain" in io.load_checkpoint(path)[1]:
+        return path
     rng = np.random.default_rng(seed)
     half = particles // 2
     r = np.concatenate([packing.course_radii("binder", half, rng),
@@ -115,50 +115,46 @@ def bench_sample(particles: int, seed: int, tolerance: float):
     top = float(x[:, 2].max() + r.max())
     R = CYLINDER_RADIUS
     wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R), walls.cylinder((0, 0, 0), (0, 0, 1), R, (0, top + 0.01))]
+    domain = ((-R, -R, 0.0), (R, R, top))
     sim = Simulation(r, x, layer=layer, walls=wl, friction=0.7,
                      settings=SolverSettings(time_step=5e-4, tolerance=max(tolerance, 1e-3), max_sweeps=200),
-                     domain=((-R, -R, 0.0), (R, R, top)))
+                     domain=domain)
     for _ in range(int(1.2 / 5e-4)):
         sim.step()
     xs, rs = sim.positions(), sim.radii()
     z_top = float((xs[:, 2] + rs).max())
     sim.set_walls(wl + [walls.plane((0, 0, z_top), (0, 0, -1), radius=R)])
     sim.set_velocities(np.zeros((particles, 3)))
-    arrays = sim.state_dict()
     path.parent.mkdir(parents=True, exist_ok=True)
-    io.save_checkpoint(path, arrays, {"walls": [w.to_dict() for w in sim.walls], "height": z_top})
+    io.save_checkpoint(path, sim.state_dict(), {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
+                                                "domain": [list(map(float, d)) for d in domain]})
     sim.close()
-    return arrays
+    return path
 
 
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None) -> dict:
-    """The shear stage (bonds, split rings, 50 mm/min) on a prepared sample, for `time`
+    """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
+    split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
     (`prepared.h5` of a `tcd run`, 150 mm mould) instead of the generated one; `particles`
     is then its own count."""
+    import pathlib
+    from .config import parse_scenario
+    from .protocols import Shear
+    from .runner import load_prepared
     _init(arch, precision)
-    from .simulation import BondLaw, Simulation, SolverSettings
-    if sample:
-        from . import io
-        arrays, _ = io.load_checkpoint(sample)
-        particles = len(arrays["particles/radius"])
-    else:
-        arrays = bench_sample(particles, seed, tolerance)
-    r, x = arrays["particles/radius"], arrays["particles/x"]
-    R = CYLINDER_RADIUS
-    height = float((x[:, 2] + r).max())
-    z_i = 0.5 * height
-    v = (50e-3 / 60.0, 0.0, 0.0)
-    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R),
-          walls.cylinder((0, 0, 0), (0, 0, 1), R, (0.0, z_i - 5e-4)),
-          walls.cylinder((0, 0, 0), (0, 0, 1), R, (z_i + 5e-4, height + 0.01), motion="constant", velocity=v),
-          walls.plane((0, 0, height), (0, 0, -1), radius=R, motion="constant", velocity=v)]
-    sim = Simulation(r, x, layer=arrays["particles/layer"], walls=wl, friction=0.7,
-                     settings=SolverSettings(tolerance=tolerance), bond_law=BondLaw(mode="paper"),
-                     domain=((-R - 0.01, -R - 0.01, 0.0), (R + 0.01, R + 0.01, height + 0.01)))
-    sim.load_state_dict(arrays)
-    bonds = sim.create_bonds(1e-5)
+    path = pathlib.Path(sample) if sample else bench_sample(particles, seed, tolerance)
+    scn = parse_scenario(f'name = "bench_shear"\nseeds = [{int(seed)}]\n'
+                         f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
+                         f'[solver]\ntolerance = {float(tolerance)!r}\n'
+                         f'[[stage]]\nkind = "shear"\nsample = {str(path.resolve())!r}\n', "<bench shear>")
+    stage = scn.stages[0]
+    sim = load_prepared(scn, stage.sample)
+    particles = sim.n
+    phase, sim = Shear(stage, scn, seed).plan(0, sim, sim.time)
+    sim.set_walls(phase.walls)
+    bonds = int(phase.info["bonds_created"])
     steps = max(2, int(round(time / sim.settings.time_step)))
     compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
     out = {

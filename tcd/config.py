@@ -316,7 +316,8 @@ class ShearStage(_Model):
     horizontally at `velocity_mm_per_min` until `displacement_mm`. Bonds (the `[bond]` law,
     `bond_mode` overriding its mode) are created between touching particles at the start.
     `sample`: "" for the sample of the preceding prepare stage, else a state file path
-    (relative paths are relative to the scenario file's directory)."""
+    (relative paths are relative to the scenario file's directory); `{seed}` in it is replaced
+    by each sample's seed, so a study can shear a set of prepared samples."""
     kind: Literal["shear"]
     displacement_mm: float = Field(2.5, gt=0)
     velocity_mm_per_min: float = Field(50.0, gt=0)
@@ -486,8 +487,15 @@ def _resolve_samples(scenario: Scenario) -> Scenario:
     for k, stage in enumerate(scenario.stages):
         if isinstance(stage, ShearStage) and stage.sample:
             path = (base / stage.sample).resolve()
-            if not path.is_file():
-                missing.append((f"stage[{k + 1}].sample", f"no such sample file: {path}"))
+            for seed in scenario.seeds:
+                try:
+                    each = Path(str(path).format(seed=seed))
+                except (KeyError, IndexError, ValueError) as exc:
+                    missing.append((f"stage[{k + 1}].sample", f"bad placeholder in {stage.sample!r}: "
+                                                              f"only {{seed}} is known ({exc})"))
+                    break
+                if not each.is_file():
+                    missing.append((f"stage[{k + 1}].sample", f"no such sample file: {each}"))
             stage = stage.model_copy(update={"sample": str(path)})
         stages.append(stage)
     if missing:

@@ -304,6 +304,7 @@ class Shear:
         d = sim.bonds_state_counts()
         return {"displacement": self.velocity * (sim.time - phase.info["t0"]),
                 "shear_force": float(-f_ring[0]),
+                "top_plate_shear_force": float(-sim.wall_force(3)[0]),
                 "shear_stress": float(-f_ring[0] / (math.pi * R**2)),
                 "bonds_intact": d[0], "bonds_broken_tension": d[1], "bonds_broken_shear": d[2]}
 
@@ -332,7 +333,16 @@ class Shear:
             near = np.abs(z_b - z_i) < band
         else:
             near = np.zeros(0, bool)
+        # energy: work of the moving walls on the grains (ring and top plate, both along x)
+        # against the kinetic energy; a quasi-static test keeps the ratio small
+        work = 0.0
+        if "top_plate_shear_force" in series and len(d) > 1:
+            f = np.asarray(series["shear_force"]) + np.asarray(series["top_plate_shear_force"])
+            work = float(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(d)))
+        ke = np.asarray(series.get("kinetic_energy", [np.nan]))
         out = {
+            "wall_work_J": work, "kinetic_energy_max_J": float(np.nanmax(ke)) if len(ke) else float("nan"),
+            "kinetic_over_work_max": float(np.nanmax(ke) / work) if work > 0 else float("nan"),
             "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d_peak * 1e3, "residual_MPa": float(tail) * 1e-6,
             "peak_index": k, "smoothing_window_mm": c.smoothing_window_mm,
             "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),

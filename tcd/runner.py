@@ -167,7 +167,7 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
         stage = scn.stages[stage_idx]
         proto = PROTOCOLS[stage.kind](stage, scn, seed)
         if stage.kind == "shear" and getattr(stage, "sample", "") and sim is None:
-            sim = load_prepared(scn, stage.sample)
+            sim = load_prepared(scn, stage.sample.format(seed=seed))
         t_stage = time.perf_counter() - result["wall_time_s"].get(f"{stage_idx}:{stage.kind}", 0.0)
         while True:
             if phase is None:
@@ -196,7 +196,10 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
                 if sim.time >= next_snapshot - 1e-12:
                     io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
                                     stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
-                    next_snapshot += scn.output.snapshot_every
+                    # the next multiple of the interval after now (a run that starts from a
+                    # sample at t > 0 does not write a burst of frames to catch up)
+                    every = scn.output.snapshot_every
+                    next_snapshot = (math.floor(sim.time / every + 1e-9) + 1) * every
                 if step_in_phase % 100 == 0:
                     bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")
                 if (phase.settle and step_in_phase >= phase.min_steps
@@ -231,7 +234,8 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
         numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)
         result["stages"][f"{stage_idx}:{stage.kind}"] = numbers
         units = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
-                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m"}
+                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
+                 "top_plate_shear_force": "N"}
         if arrays:
             io.write_series(sample_dir / f"{stage.kind}_series.h5", arrays,
                             units={k: u for k, u in units.items() if k in arrays}, attrs=attrs,

@@ -21,7 +21,7 @@ import taichi as ti
 
 from . import backend, contacts as ck, solver as sk
 from .state import (MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
-                    WallFields, acquire, field_bytes, get, put, release)
+                    WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "coloured")
@@ -195,6 +195,7 @@ class Simulation:
         self.stats = acquire(SolverStats, 1)
         self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
         self.grow_events: list[str] = []
+        self._refit_contacts = False
 
     # ---------------------------------------------------------------- construction helpers
     def _make_grid(self, capacity: int) -> Grid:
@@ -303,6 +304,11 @@ class Simulation:
                                 s.projection_passes)
         sk.wall_forces(p, wl, ct, h)
         ck.save_history(ct, self.n)
+        if self._refit_contacts:
+            self._refit_contacts = False
+            need = capacity_class(int(1.5 * int(ct.total[None])) + 64)
+            if need < ct.capacity:
+                self._resize_contacts(need, keep_current=True)
         self.time = t_end
         self.step_index += 1
         self.last = StepRecord(self.time, int(self.stats.sweeps[None]), float(self.stats.residual[None]),
@@ -354,11 +360,13 @@ class Simulation:
             total = ck.exclusive_scan(ct.count, ct.start, self.n)
             if total <= ct.capacity:
                 break
-            self._grow_contacts(int(total * 1.5) + 16)
+            self._resize_contacts(int(total * 1.5) + 16)
         ct.total[None] = total
         ck.contact_fill(p, wl, self.grid, bd, ct, half, self.alert, self.settings.time_step)
 
-    def _grow_contacts(self, capacity: int) -> None:
+    def _resize_contacts(self, capacity: int, keep_current: bool = False) -> None:
+        """A contact buffer of `capacity` slots holding the warm-start history of the old one
+        and, with `keep_current`, its current contact list too (between steps)."""
         old = self.contacts
         self.grow_events.append(f"contacts {old.capacity} -> {capacity}")
         new = acquire(Contacts, capacity, self.particles.capacity)
@@ -367,6 +375,13 @@ class Simulation:
         put(new.prev_impulse, get(old.prev_impulse, m))
         new.prev_start.from_numpy(old.prev_start.to_numpy())
         new.prev_total[None] = m
+        if keep_current:
+            k = int(old.total[None])
+            for key in ("i", "j", "normal", "impulse", "rhs", "wnn", "wtt", "mu", "colour", "gap"):
+                put(getattr(new, key), get(getattr(old, key), k))
+            new.count.from_numpy(old.count.to_numpy())
+            new.start.from_numpy(old.start.to_numpy())
+            new.total[None] = k
         release(old)
         self.contacts = new
 
@@ -385,6 +400,8 @@ class Simulation:
         else:
             gaps = np.zeros(0)
         b = len(pairs)
+        # bonded pairs leave the contact list: refit its buffer to what the next step needs
+        self._refit_contacts = b > 0
         self._set_bond_arrays({
             "i": pairs[:, 0].astype(np.int32), "j": pairs[:, 1].astype(np.int32),
             "g0": gaps, "created": np.full(b, self.time),
@@ -470,7 +487,7 @@ class Simulation:
             put(getattr(p, key), d["particles/" + key])
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
-            self._grow_contacts(m)
+            self._resize_contacts(m)
         ct = self.contacts
         put(ct.prev_j, d["contacts/j"])
         put(ct.prev_impulse, d["contacts/impulse"])

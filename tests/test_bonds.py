@@ -250,3 +250,39 @@ def test_state_with_bonds_round_trips_bit_exactly_and_continues_identically(tmp_
     b.step(30)
     for k in ("particles/x", "particles/v", "bonds/impulse", "bonds/hd_t", "bonds/hk_n"):
         assert np.array_equal(a.state_dict()[k], b.state_dict()[k]), k
+
+
+def _bonded_pile(refit: bool):
+    """A 4 x 4 x 3 lattice of touching spheres on a floor, bonded, stepped under gravity."""
+    r = 0.004
+    g = np.arange(4) * 2 * r
+    x = np.array([[a, b, r + c] for a in g for b in g for c in g[:3]])
+    sim = Simulation(np.full(len(x), r), x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     settings=SolverSettings(time_step=2e-4, tolerance=1e-8),
+                     domain=((-0.01,) * 3, (0.04, 0.04, 0.04)))
+    sim.step(3)
+    before = sim.contacts.capacity
+    assert sim.create_bonds(1e-6) > 50
+    sim._refit_contacts = refit
+    sim.step(1)
+    listed = sim.contact_arrays()           # the list of the step that refitted the buffer
+    assert len(listed["i"]) == int(sim.last.contacts) > 0
+    sim.step(19)
+    return sim, before, listed
+
+
+def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
+    """Bonded pairs leave the contact list; the buffer shrinks to fit after the next step and
+    the trajectory is the same, bit for bit, as with the old buffer."""
+    fitted, before, listed_f = _bonded_pile(True)
+    kept, _, listed_k = _bonded_pile(False)
+    for key in listed_k:
+        assert np.array_equal(listed_f[key], listed_k[key]), key
+    assert kept.contacts.capacity == before
+    assert fitted.contacts.capacity < before
+    assert fitted.contacts.capacity >= int(fitted.contacts.total[None])
+    assert np.array_equal(fitted.positions(), kept.positions())
+    assert np.array_equal(fitted.velocities(), kept.velocities())
+    assert fitted.memory_bytes() < kept.memory_bytes()
+    fitted.close()
+    kept.close()

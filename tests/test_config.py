@@ -312,6 +312,19 @@ def test_shear_sample_path_is_resolved_and_must_exist(tmp_path):
     assert_names(err, "stage[1].sample", "no such sample file")
 
 
+def test_shear_sample_path_may_name_each_seed(tmp_path):
+    (tmp_path / "s1.h5").write_bytes(b"")
+    (tmp_path / "s2.h5").write_bytes(b"")
+    text = 'name = "x"\nseeds = [1, 2]\n[[stage]]\nkind = "shear"\nsample = "s{seed}.h5"\n'
+    s = load_scenario(write(tmp_path, text))
+    assert s.stages[0].sample.format(seed=2) == str((tmp_path / "s2.h5").resolve())
+    err = refusal(tmp_path, text.replace("[1, 2]", "[1, 2, 3]"))
+    assert_names(err, "stage[1].sample", "no such sample file", "s3.h5")
+    assert "s1.h5" not in str(err)
+    err = refusal(tmp_path, text.replace("{seed}", "{sed}"))
+    assert_names(err, "stage[1].sample", "only {seed} is known")
+
+
 def test_duplicate_seeds_and_bad_seed(tmp_path):
     err = refusal(tmp_path, "seeds = [1, 2, 1, -3]\n" + MINIMAL)
     assert_names(err, "seeds[4]", "greater than or equal to 0", "-3")

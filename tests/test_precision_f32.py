@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_engine_and_bond_physics_pass_in_f32(precision):
     if precision == "f32":
         pytest.skip("already running in f32")
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--precision", "f32",
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", "--precision", "f32",
            "tests/test_engine.py", "tests/test_bonds.py"]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1200,
                          env={**os.environ, "TI_LOG_LEVEL": "warn"})
