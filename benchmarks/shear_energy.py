@@ -29,11 +29,13 @@ def main(argv=None) -> int:
     ap.add_argument("--max-sweeps", type=int, default=None)
     ap.add_argument("--set", action="append", default=[],
                     help="override a scenario line KEY=VALUE (first `KEY = ...` line replaced)")
+    ap.add_argument("--energy", action="store_true",
+                    help="also the potential energy of gravity and the bonds' elastic energy")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
 
     import tcd
-    from tcd import backend
+    from tcd import backend, laws
     from tcd.config import parse_scenario
     from tcd.protocols import Shear
     from tcd.runner import load_prepared
@@ -61,11 +63,30 @@ def main(argv=None) -> int:
     r = sim.radii()
     m = scn.material.density * 4.0 / 3.0 * np.pi * r**3
     inertia = 0.4 * m * r**2
+    law = sim.bond_law
+    g = scn.solver.gravity
+
+    def bond_energy():
+        """Elastic energy of the intact bonds (secant or Burgers spring about its offset)."""
+        st = sim.state_dict()
+        ok = st["bonds/state"] == 0
+        i, j = st["bonds/i"][ok], st["bonds/j"][ok]
+        x = st["particles/x"]
+        dn = np.linalg.norm(x[j] - x[i], axis=1) - r[i] - r[j] - st["bonds/g0"][ok]
+        dt = st["bonds/d_t"][ok]
+        if law.mode == "paper":
+            comp = laws.creep_compliance(sim.time - st["bonds/created"][ok], law.maxwell_stiffness,
+                                         law.maxwell_viscosity, law.kelvin_stiffness, law.kelvin_viscosity)
+        else:
+            comp = np.full(len(i), 1.0 / law.maxwell_stiffness)
+        return float(np.sum(0.5 * dn**2 / comp + 0.5 * (dt**2).sum(1) / (comp * law.tangent_factor)))
+
     rows = []
     t0 = time.perf_counter()
     work = 0.0
     for k in range(a.steps):
         t_beg = sim.time
+        proto.before_step(sim, phase)
         rec = sim.step()
         dw = 0.0
         for iw, w in enumerate(sim.walls):
@@ -78,7 +99,10 @@ def main(argv=None) -> int:
         sp = np.linalg.norm(v, axis=1)
         f = int(sp.argmax())
         counts = sim.bonds_state_counts()
-        rows.append({"step": k + 1, "time": sim.time, "ke_trans": ke_t, "ke_rot": ke_r,
+        extra = {}
+        if a.energy:
+            extra = {"pe": float((m * g * x[:, 2]).sum()), "e_bond": bond_energy()}
+        rows.append({"step": k + 1, "time": sim.time, "ke_trans": ke_t, "ke_rot": ke_r, **extra,
                      "wall_work_step": dw, "wall_work_total": work,
                      "bonds_broken": counts[1] + counts[2], "sweeps": rec.sweeps,
                      "residual": rec.residual, "contacts": rec.contacts,

@@ -104,7 +104,9 @@ class SolverConfig(_Model):
     "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
     "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
     overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
-    position projection leaves contacts alone; projection_passes: its sweeps (0: off)."""
+    position projection leaves contacts alone; projection_passes: its sweeps (0: off);
+    bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
+    (true, the default; false: bond by bond, which stalls on the bonds of light grains)."""
     time_step: float = Field(2e-4, gt=0)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)
@@ -116,6 +118,7 @@ class SolverConfig(_Model):
     gravity: float = Field(9.81, ge=0)
     overlap_slop: float = Field(0.002, ge=0)
     projection_passes: int = Field(2, ge=0)
+    bond_blocks: bool = True
 
     @model_validator(mode="after")
     def _check(self) -> "SolverConfig":
@@ -132,7 +135,8 @@ class SolverConfig(_Model):
                               check_every=self.check_every, schedule=self.schedule,
                               acceleration=self.acceleration, alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
-                              projection_passes=self.projection_passes)
+                              projection_passes=self.projection_passes,
+                              bond_blocks=self.bond_blocks)
 
 
 class MaterialConfig(_Model):
@@ -317,7 +321,9 @@ class ShearStage(_Model):
     `bond_mode` overriding its mode) are created between touching particles at the start.
     `sample`: "" for the sample of the preceding prepare stage, else a state file path
     (relative paths are relative to the scenario file's directory); `{seed}` in it is replaced
-    by each sample's seed, so a study can shear a set of prepared samples."""
+    by each sample's seed, so a study can shear a set of prepared samples. `tolerance` and
+    `max_sweeps`: the solver's during this stage (default: those of `[solver]`); a bonded
+    sample needs a tighter tolerance than a pour (README, "Convergence")."""
     kind: Literal["shear"]
     displacement_mm: float = Field(2.5, gt=0)
     velocity_mm_per_min: float = Field(50.0, gt=0)
@@ -326,6 +332,8 @@ class ShearStage(_Model):
     wall_friction: float = Field(0.0, ge=0)
     smoothing_window_mm: float = Field(0.1, gt=0)
     bond_mode: Optional[Literal["paper", "burgers"]] = None
+    tolerance: Optional[float] = Field(None, gt=0)
+    max_sweeps: Optional[int] = Field(None, ge=1)
     sample: str = ""
 
     @property

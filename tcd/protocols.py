@@ -296,7 +296,12 @@ class Shear:
                                                   "mould_height": plate}), sim
 
     def before_step(self, sim, phase) -> None:
-        pass
+        # the stage's solver settings (here, not in plan: a resumed run passes here too)
+        c = self.cfg
+        changes = {k: v for k, v in (("tolerance", c.tolerance), ("max_sweeps", c.max_sweeps))
+                   if v is not None and getattr(sim.settings, k) != v}
+        if changes:
+            sim.settings = dataclasses.replace(sim.settings, **changes)
 
     def record(self, sim, phase) -> dict:
         R = phase.info["radius"]

@@ -41,7 +41,9 @@ class SolverSettings:
     "none" (plain Gauss-Seidel; the coloured schedule is always plain); alert_ratio:
     alert distance as a fraction of the smallest radius; gravity (m/s^2, vector);
     overlap_slop: interpenetration (fraction of the smallest diameter) left alone by the
-    end-of-step position projection; projection_passes: its sweeps per step (0: off)."""
+    end-of-step position projection; projection_passes: its sweeps per step (0: off);
+    bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
+    (serial schedule; False: bond by bond, which converges badly on light grains)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -53,6 +55,7 @@ class SolverSettings:
     gravity: tuple = (0.0, 0.0, -9.81)
     overlap_slop: float = 0.002
     projection_passes: int = 2
+    bond_blocks: bool = True
 
     def __post_init__(self):
         if not self.time_step > 0:
@@ -292,7 +295,7 @@ class Simulation:
         sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
-                           1 if s.acceleration == "nncg" else 0)
+                           1 if s.acceleration == "nncg" else 0, 1 if s.bond_blocks else 0)
             colours = 0
         else:
             colours = self._solve_coloured()
@@ -446,6 +449,12 @@ class Simulation:
         start = np.zeros(self.n + 1, np.int32)
         np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
         put(bd.start, np.cumsum(start))
+        js = np.asarray(a["j"], int)[order]
+        rev = np.argsort(js, kind="stable").astype(np.int32)       # bond indices, by j then i
+        rev_start = np.zeros(self.n + 1, np.int32)
+        np.add.at(rev_start, js + 1, 1)
+        put(bd.rev, rev)
+        put(bd.rev_start, np.cumsum(rev_start))
         bd.total[None] = b
         bd.broken[None] = int(np.count_nonzero(np.asarray(a.get("state", np.zeros(b))) != sk.INTACT))
         self.bonds = bd

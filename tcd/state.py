@@ -239,6 +239,10 @@ class Bonds:
         self.rhs_n, self.cn, self.ct, self.wnn, self.wtt = _real(c), _real(c), _real(c), _real(c), _real(c)
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.start = _int(particle_capacity + 1)
+        # bonds whose second particle is p: rev[rev_start[p]:rev_start[p + 1]] (the bonds of
+        # particle p are bonds start[p]..start[p+1] plus these: the particle-block relaxation)
+        self.rev = _int(c)
+        self.rev_start = _int(particle_capacity + 1)
         self.total = _scalar()
         self.broken = _scalar()
 
@@ -246,6 +250,7 @@ class Bonds:
         self.total[None] = 0
         self.broken[None] = 0
         self.start.fill(0)
+        self.rev_start.fill(0)
 
 
 @ti.data_oriented

@@ -286,3 +286,29 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
     assert fitted.memory_bytes() < kept.memory_bytes()
     fitted.close()
     kept.close()
+
+
+@pytest.mark.parametrize("mode", ["paper", "burgers"])
+def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode):
+    """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two
+    bonds share the load (F J / 2 of displacement, F / 2 each: one in tension, one in
+    compression). Solved bond by bond at tolerance 1e-4 this stalls far from the answer (the
+    grain's two bonds are nearly dependent: h^2 K / m = 7e3); the particle-block relaxation
+    solves the grain's bonds together."""
+    R, r, h = 0.008, 0.001, 2e-4
+    x = np.array([[0.0, 0, 0], [R + r, 0, 0], [2 * (R + r), 0, 0]])
+    sim = Simulation([R, r, R], x, fixed=[True, False, True],
+                     settings=SolverSettings(time_step=h, tolerance=1e-4, gravity=(0, 0, 0)),
+                     bond_law=BondLaw(mode=mode), domain=((-0.01,) * 3, (0.03, 0.01, 0.01)))
+    assert sim.create_bonds(gap_tolerance=1e-7) == 2
+    F = 0.5                                          # N, far below the yield force (8.5 N)
+    sim.set_external_force([[0, 0, 0], [F, 0, 0], [0, 0, 0]])
+    steps = 50
+    sim.step(steps)
+    u = sim.positions()[1, 0] - x[1, 0]
+    t = steps * h
+    # both laws creep as F J(t) under a constant force (Burgers to first order in H)
+    assert u == pytest.approx(0.5 * F * J(t), rel=2e-2)
+    fx = sim.state_dict()["bonds/impulse"][:, 0] / h
+    np.testing.assert_allclose(np.sort(fx), [-0.5 * F, 0.5 * F], rtol=2e-2)
+    sim.close()

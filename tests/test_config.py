@@ -325,6 +325,15 @@ def test_shear_sample_path_may_name_each_seed(tmp_path):
     assert_names(err, "stage[1].sample", "only {seed} is known")
 
 
+def test_shear_stage_may_tighten_the_solver(tmp_path):
+    (tmp_path / "s.h5").write_bytes(b"")
+    text = 'name = "x"\n[[stage]]\nkind = "shear"\nsample = "s.h5"\ntolerance = 1e-6\nmax_sweeps = 9000\n'
+    st = load_scenario(write(tmp_path, text)).stages[0]
+    assert st.tolerance == 1e-6 and st.max_sweeps == 9000
+    err = refusal(tmp_path, text.replace("1e-6", "-1e-6"))
+    assert_names(err, "stage[1].tolerance", "greater than 0")
+
+
 def test_duplicate_seeds_and_bad_seed(tmp_path):
     err = refusal(tmp_path, "seeds = [1, 2, 1, -3]\n" + MINIMAL)
     assert_names(err, "seeds[4]", "greater than or equal to 0", "-3")
