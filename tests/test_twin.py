@@ -60,9 +60,20 @@ def test_twin_prepared_file_matches_summary(twin):
 
 # -- issue 6: the shear ---------------------------------------------------------------------------
 def test_twin_upper_half_moves_with_the_ring(twin):
+    """The upper grains follow the ring; the lower ones move much less (the twin's rings are
+    only 3.75 largest grains across, so the grains near the plane drag some lower ones)."""
     _, _, shear = twin
     assert shear["upper_mean_dx_over_ring"] > 0.8
-    assert abs(shear["lower_mean_dx_over_ring"]) < 0.2
+    assert abs(shear["lower_mean_dx_over_ring"]) < 0.5 * shear["upper_mean_dx_over_ring"]
+
+
+def test_twin_shear_is_quasi_static(twin):
+    """The kinetic energy stays below 1 % of the work of the moving walls. (At tolerance 1e-4
+    the unconverged bonds release energy: 1.7 % on this twin, with a peak of 1.85 MPa instead
+    of 4.0: the ratio flags such runs.)"""
+    _, _, shear = twin
+    assert shear["wall_work_J"] > 0
+    assert shear["kinetic_over_work_max"] < 0.01
 
 
 def test_twin_bonds_break_most_near_the_plane(twin):
