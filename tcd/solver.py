@@ -221,45 +221,54 @@ def bond_block_terms(p: ti.template(), wl: ti.template(), bd: ti.template(), b, 
 
 
 @ti.func
+def particle_bond_count(bd: ti.template(), q):
+    """Bonds of particle q: those where it is i (bonds start[q]..) then those where it is j."""
+    return (bd.start[q + 1] - bd.start[q]) + (bd.rev_start[q + 1] - bd.rev_start[q])
+
+
+@ti.func
+def particle_bond(bd: ti.template(), q, k):
+    """The k-th bond of particle q (see particle_bond_count)."""
+    nf = bd.start[q + 1] - bd.start[q]
+    b = bd.start[q] + k
+    if k >= nf:
+        b = bd.rev[bd.rev_start[q] + k - nf]
+    return b
+
+
+@ti.func
 def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(), q):
     """Exact solve of the intact bonds of particle q (the star of q and its bonded
     neighbours, see above). A fixed particle (or locked rotation) keeps those unknowns at
     zero: its bonds are then solved one by one."""
     rq = p.radius[q]
-    mov = p.inv_mass[q] > 0.0
-    rot = p.inv_inertia[q] > 0.0
     a = ti.Matrix.zero(float, 6, 6)
     g = ti.Vector.zero(float, 6)
     count = 0
-    for side in ti.static(range(2)):
-        lo, hi = bd.start[q], bd.start[q + 1]
-        if ti.static(side == 1):
-            lo, hi = bd.rev_start[q], bd.rev_start[q + 1]
-        for t in range(lo, hi):
-            b = t
-            if ti.static(side == 1):
-                b = bd.rev[t]
-            if bd.state[b] == INTACT:
-                count += 1
-                s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
-                sk_ = skew(ahat)
-                ke = kb @ e
-                ks = kb @ sk_
-                ske = ahat.cross(ke)
-                sks = sk_.transpose() @ ks
-                for r in ti.static(range(3)):
-                    g[r] -= ke[r]
-                    g[3 + r] -= ske[r]
-                    for c in ti.static(range(3)):
-                        a[r, c] += kb[r, c]
-                        a[r, 3 + c] -= ks[r, c]
-                        a[3 + c, r] -= ks[r, c]
-                        a[3 + r, 3 + c] += sks[r, c]
+    nq = particle_bond_count(bd, q)
+    for k in range(nq):
+        b = particle_bond(bd, q, k)
+        if bd.state[b] == INTACT:
+            count += 1
+            s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
+            sk_ = skew(ahat)
+            ke = kb @ e
+            ks = kb @ sk_
+            ske = ahat.cross(ke)
+            sks = sk_.transpose() @ ks
+            for r in ti.static(range(3)):
+                g[r] -= ke[r]
+                g[3 + r] -= ske[r]
+                for c in ti.static(range(3)):
+                    a[r, c] += kb[r, c]
+                    a[r, 3 + c] -= ks[r, c]
+                    a[3 + c, r] -= ks[r, c]
+                    a[3 + r, 3 + c] += sks[r, c]
     if count > 0:
-        if mov:
+        if p.inv_mass[q] > 0.0:
             for r in ti.static(range(3)):
                 a[r, r] += 1.0 / p.inv_mass[q]
-        if rot:
+        if p.inv_inertia[q] > 0.0:
             for r in ti.static(range(3)):
                 a[3 + r, 3 + r] += 1.0 / (p.inv_inertia[q] * rq * rq)
         # held unknowns: their rows and columns become the identity, their right side zero
@@ -282,28 +291,20 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         dw = ti.Vector([xi[3], xi[4], xi[5]])
         sum_q = ti.Vector([0.0, 0.0, 0.0])
         sum_t = ti.Vector([0.0, 0.0, 0.0])
-        for side in ti.static(range(2)):
-            lo, hi = bd.start[q], bd.start[q + 1]
-            if ti.static(side == 1):
-                lo, hi = bd.rev_start[q], bd.rev_start[q + 1]
-            for t in range(lo, hi):
-                b = t
-                if ti.static(side == 1):
-                    b = bd.rev[t]
-                if bd.state[b] == INTACT:
-                    s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
-                    qb = -(kb @ (e + dv - ahat.cross(dw)))
-                    bd.impulse[b] += s * qb
-                    sum_q += qb
-                    sum_t += ahat.cross(qb)
-                    # the neighbour receives -Q_b at its own contact point
-                    o = bd.j[b]
-                    ro = -p.radius[o] * bd.normal[b]
-                    if ti.static(side == 1):
-                        o = bd.i[b]
-                        ro = p.radius[o] * bd.normal[b]
-                    p.v[o] = p.v[o] - qb * p.inv_mass[o]
-                    p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
+        for k in range(nq):
+            b = particle_bond(bd, q, k)
+            if bd.state[b] == INTACT:
+                s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
+                qb = -(kb @ (e + dv - ahat.cross(dw)))
+                bd.impulse[b] += s * qb
+                sum_q += qb
+                sum_t += ahat.cross(qb)
+                # the neighbour (j when q is i: s = -1) receives -Q_b at its contact point
+                # s r_o n (-r_j n for j, +r_i n for i)
+                o = bd.i[b] + bd.j[b] - q
+                ro = s * p.radius[o] * bd.normal[b]
+                p.v[o] = p.v[o] - qb * p.inv_mass[o]
+                p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
         p.v[q] = p.v[q] + sum_q * p.inv_mass[q]
         p.w[q] = p.w[q] + (p.inv_inertia[q] * rq) * sum_t
 
