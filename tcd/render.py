@@ -1192,7 +1192,11 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
     if not loaded:
         raise ValueError("figure_velocity needs at least one frame")
     speeds = np.concatenate([particle_values(fr, "speed") for fr in loaded])
-    value_range = default_range("speed", speeds)
+    # the colour scale ends at the 99th percentile: a few free small grains falling through
+    # the pores (up to ~1 m/s) would otherwise leave the whole sample at the bottom colour
+    finite = speeds[np.isfinite(speeds)]
+    top = float(np.percentile(finite, 99)) if finite.size else 0.0
+    value_range = (0.0, top) if top > 0.0 else default_range("speed", speeds)
     first = loaded[0]
     walls = WallSet.from_frame(first)
     plane = resolve_section("xz", first["x"], walls)
@@ -1235,8 +1239,8 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
         ax.set_ylabel("z (mm)")
     norm = matplotlib.colors.Normalize(*value_range)
     cb = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=COLORMAPS["speed"]),
-                      ax=list(axes), shrink=0.9)
-    cb.set_label("speed |v| (mm/s)")
+                      ax=list(axes), shrink=0.9, extend="max")
+    cb.set_label("speed |v| (mm/s), top: 99th percentile")
     with atomic_output(out) as tmp:
         fig.savefig(tmp, format=Path(out).suffix.lstrip(".") or "png")
 
