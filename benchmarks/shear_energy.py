@@ -34,7 +34,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
 
-    import tcd
     from tcd import backend, laws
     from tcd.config import parse_scenario
     from tcd.protocols import Shear

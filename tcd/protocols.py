@@ -344,10 +344,11 @@ class Shear:
         if "top_plate_shear_force" in series and len(d) > 1:
             f = np.asarray(series["shear_force"]) + np.asarray(series["top_plate_shear_force"])
             work = float(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(d)))
-        ke = np.asarray(series.get("kinetic_energy", [np.nan]))
+        ke = np.asarray(series.get("kinetic_energy", []), dtype=float)
+        ke_max = float(np.nanmax(ke)) if len(ke) else float("nan")
         out = {
-            "wall_work_J": work, "kinetic_energy_max_J": float(np.nanmax(ke)) if len(ke) else float("nan"),
-            "kinetic_over_work_max": float(np.nanmax(ke) / work) if work > 0 else float("nan"),
+            "wall_work_J": work, "kinetic_energy_max_J": ke_max,
+            "kinetic_over_work_max": ke_max / work if work > 0 else float("nan"),
             "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d_peak * 1e3, "residual_MPa": float(tail) * 1e-6,
             "peak_index": k, "smoothing_window_mm": c.smoothing_window_mm,
             "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),

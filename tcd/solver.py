@@ -199,7 +199,8 @@ def skew(a):
 
 @ti.func
 def bond_block_terms(p: ti.template(), wl: ti.template(), bd: ti.template(), b, q):
-    """Sign s, unit offset, stiffness K = C^-1 (3 x 3) and residual e of bond b seen from q."""
+    """Bond b seen from q: sign s, unit offset -s n, stiffness K = (C + W_o)^-1 (3 x 3),
+    residual e, and the neighbour o."""
     i, j, n = bd.i[b], bd.j[b], bd.normal[b]
     s = 1.0
     if q == i:
@@ -217,7 +218,7 @@ def bond_block_terms(p: ti.template(), wl: ti.template(), bd: ti.template(), b, 
     ro = p.radius[o]
     kb = (nn / (bd.cn[b] + p.inv_mass[o])
           + (eye - nn) / (bd.ct[b] + p.inv_mass[o] + ro * ro * p.inv_inertia[o]))
-    return s, -s * n, kb, s * res
+    return s, -s * n, kb, s * res, o
 
 
 @ti.func
@@ -250,7 +251,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         b = particle_bond(bd, q, k)
         if bd.state[b] == INTACT:
             count += 1
-            s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
+            s, ahat, kb, e, _ = bond_block_terms(p, wl, bd, b, q)
             sk_ = skew(ahat)
             ke = kb @ e
             ks = kb @ sk_
@@ -294,14 +295,13 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         for k in range(nq):
             b = particle_bond(bd, q, k)
             if bd.state[b] == INTACT:
-                s, ahat, kb, e = bond_block_terms(p, wl, bd, b, q)
+                s, ahat, kb, e, o = bond_block_terms(p, wl, bd, b, q)
                 qb = -(kb @ (e + dv - ahat.cross(dw)))
                 bd.impulse[b] += s * qb
                 sum_q += qb
                 sum_t += ahat.cross(qb)
-                # the neighbour (j when q is i: s = -1) receives -Q_b at its contact point
-                # s r_o n (-r_j n for j, +r_i n for i)
-                o = bd.i[b] + bd.j[b] - q
+                # the neighbour receives -Q_b at its contact point s r_o n
+                # (-r_j n when it is j, +r_i n when it is i)
                 ro = s * p.radius[o] * bd.normal[b]
                 p.v[o] = p.v[o] - qb * p.inv_mass[o]
                 p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
