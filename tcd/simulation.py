@@ -510,6 +510,10 @@ class Simulation:
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
         self._set_bond_arrays(bonds)
+        # the wall forces of the last step: a servo plate reads them before the next step
+        force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
+        if len(force) == len(self.walls):
+            put(self.wall_fields.force, force)
 
     def memory_bytes(self) -> int:
         parts = [self.particles, self.contacts, self.bonds, self.grid, self.wall_fields]

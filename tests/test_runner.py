@@ -129,3 +129,31 @@ def test_resume_without_checkpoint_is_refused(tmp_path):
     scenario = tmp_path / "micro.toml"
     scenario.write_text(MICRO)
     assert cli.main(["run", str(scenario), "--out", str(tmp_path / "nothing"), "--resume"]) == 2
+
+
+def test_resume_restores_the_wall_forces_a_servo_plate_reads(tmp_path):
+    """The preparation's servo plate reads the force of the last step before it moves, so a
+    resumed run must start with the wall forces the checkpoint holds (a kill during a hold
+    phase once gave a different sample)."""
+    from tcd import config, runner
+    from tcd.simulation import Simulation
+    from tcd.walls import plane
+    scn = config.parse_scenario(MICRO)
+    r = 0.002
+    x = np.array([[0.0, 0.0, r], [0.0, 0.0, 3 * r], [0.0, 0.0, 5 * r]])
+    walls = [plane((0, 0, 0), (0, 0, 1), name="floor"),
+             plane((0, 0, 6 * r), (0, 0, -1), name="top", motion="constant", velocity=(0, 0, -1e-3))]
+    a = Simulation([r] * 3, x, walls=walls, settings=scn.solver.to_settings(), density=scn.material.density,
+                   friction=scn.material.friction,
+                   domain=((-0.01, -0.01, -0.01), (0.01, 0.01, 0.03)))
+    a.step(20)
+    assert a.wall_force(0)[2] < 0 and a.wall_force(1)[2] > 0     # both plates carry the column
+    path = tmp_path / "checkpoint.h5"
+    io.save_checkpoint(path, a.state_dict(), {"walls": [w.to_dict() for w in a.walls], "time": a.time,
+                                              "step": a.step_index, "domain": [list(a.domain[0]), list(a.domain[1])]})
+    b = runner.restore_simulation(scn, *io.load_checkpoint(path))
+    for k in range(2):
+        assert np.array_equal(a.wall_force(k), b.wall_force(k)), k
+    a.step(5)
+    b.step(5)
+    assert np.array_equal(a.positions(), b.positions())
