@@ -104,6 +104,10 @@ def _resume_command(args) -> str:
         words += ["--arch", args.arch]
     if args.precision:
         words += ["--precision", args.precision]
+    if getattr(args, "seeds", None):
+        words += ["--seeds", ",".join(map(str, args.seeds))]
+    if getattr(args, "jobs", 1) > 1:
+        words += ["--jobs", str(args.jobs)]
     return shlex.join(words + ["--resume"])
 
 
@@ -111,6 +115,7 @@ def cmd_run(args) -> int:
     from .config import load_scenario
     scenario = load_scenario(args.scenario).with_overrides(arch=args.arch,
                                                             precision=args.precision)
+    scenario = scenario.with_seeds(args.seeds)
     out_dir = Path(args.out) if args.out else Path("runs") / scenario.name
     args.out_dir = out_dir
     if args.resume:
@@ -232,6 +237,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _seed_list(text: str) -> list:
+    try:
+        seeds = [int(w) for w in text.split(",") if w.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integer seeds, got {text!r}") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError(f"expected at least one seed, got {text!r}")
+    return seeds
+
+
 def _positive_float(text: str) -> float:
     value = float(text)
     if not (value > 0 and math.isfinite(value)):
@@ -265,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
                    help="samples run at once, one process each (default 1; the CPU solver "
                         "uses one core per sample)")
+    p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
+                   help="run only these of the scenario's seeds (e.g. to split a study across "
+                        "invocations; the summary then holds these samples)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint)")

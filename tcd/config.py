@@ -443,6 +443,19 @@ class Scenario(_Model):
         return self.model_copy(update={"backend": backend})
 
 
+    def with_seeds(self, seeds: Optional[list] = None) -> "Scenario":
+        """A copy that runs only `seeds`, each of which must be one of the scenario's seeds
+        (None: keep all). Lets a study be split across invocations or machines."""
+        if not seeds:
+            return self
+        unknown = [s for s in seeds if s not in self.seeds]
+        if unknown:
+            raise ScenarioError(self.source, [("seeds", f"--seeds {unknown} not among the scenario's seeds {self.seeds}")])
+        if len(set(seeds)) != len(seeds):
+            raise ScenarioError(self.source, [("seeds", f"--seeds {seeds} repeats a seed")])
+        return self.model_copy(update={"seeds": list(seeds)})
+
+
 # --- parsing -----------------------------------------------------------------------------------
 def load_scenario(path) -> Scenario:
     """Read and validate the scenario file at `path` (see parse_scenario)."""
