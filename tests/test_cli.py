@@ -166,6 +166,33 @@ def test_interrupted_run_says_how_to_resume(scenario_file, tmp_path, capsys, stu
     assert f"--out {out_dir}" in err and "--arch cpu" in err and err.rstrip().endswith("--resume")
 
 
+def test_seeds_option_runs_a_subset_and_the_resume_advice_repeats_it(tmp_path, capsys, stub):
+    calls = []
+
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
+        calls.append(scenario.seeds)
+        raise KeyboardInterrupt
+    stub("runner", run_scenario=run_scenario)
+    path = tmp_path / "five.toml"
+    path.write_text("seeds = [1, 2, 3, 4, 5]\n" + SCENARIO)
+    out_dir = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out_dir), "--seeds", "4,2", "--jobs", "2"]) == 130
+    assert calls == [[4, 2]]
+    err = capsys.readouterr().err
+    assert "--seeds 4,2 --jobs 2 --resume" in err
+
+
+@pytest.mark.parametrize("seeds, message", [("9", "[9] not among the scenario's seeds"),
+                                             ("2,2", "repeats a seed"),
+                                             ("x", "comma-separated integer seeds")])
+def test_seeds_option_rejects_seeds_the_scenario_lacks(tmp_path, capsys, runner_calls, seeds, message):
+    path = tmp_path / "five.toml"
+    path.write_text("seeds = [1, 2, 3, 4, 5]\n" + SCENARIO)
+    assert main(["run", str(path), "--out", str(tmp_path / "run"), "--seeds", seeds]) == 2
+    assert message in capsys.readouterr().err and runner_calls == []
+    assert not (tmp_path / "run").exists()
+
+
 def test_info_missing_file(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.h5")]) == 2
     err = capsys.readouterr().err
