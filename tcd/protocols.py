@@ -222,10 +222,17 @@ class Prepare:
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
         nl = len(tops)
+        area = math.pi * self.radius**2
+        vol = 4.0 / 3.0 * math.pi * r**3
         # layers are slabs between the plates and the equal-volume interfaces, so that the
         # heights add up to the sample height and the per-layer packing fractions (all sphere
         # volume inside each slab) average to the overall one
         bounds = [0.0] + [obs.layer_interface(x, r, layer, L, L + 1) for L in range(nl - 1)] + [H]
+        # diagnostics of the interface: each course's lift from the top of the course below
+        # (99th percentile of grain tops) to its own top (the last one to the top plate), with
+        # its own grains' volume over that lift; and the upper course's grains that fell into
+        # the pores of the course below (centre below its top), with the depth of the deepest
+        lifts = [0.0] + tops[:-1] + [H]
         c = sim.contact_arrays()
         rho = np.hypot(x[:, 0], x[:, 1])
         slack = 0.01 * 2 * float(r.min())         # 1 % of the smallest diameter
@@ -237,6 +244,14 @@ class Prepare:
             "layer_heights_mm": [1e3 * (bounds[k + 1] - bounds[k]) for k in range(nl)],
             "packing_fraction_per_layer": [obs.packing_fraction(x, r, self.radius, bounds[L], bounds[L + 1])
                                            for L in range(nl)],
+            "course_lift_heights_mm": [1e3 * (lifts[k + 1] - lifts[k]) for k in range(nl)],
+            "course_packing_fraction_per_lift": [float(vol[layer == L].sum()) / (area * (lifts[L + 1] - lifts[L]))
+                                                 for L in range(nl)],
+            "grains_in_lower_course": [0] + [int(np.count_nonzero((layer == L) & (x[:, 2] < tops[L - 1])))
+                                             for L in range(1, nl)],
+            "deepest_grain_below_lower_top_mm": [0.0] + [
+                1e3 * max(0.0, tops[L - 1] - float(x[layer == L, 2].min())) if np.any(layer == L) else 0.0
+                for L in range(1, nl)],
             "packing_fraction": obs.packing_fraction(x, r, self.radius, 0.0, H),
             "coordination_number": obs.coordination_number(c["i"], c["j"], sim.n),
             "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),

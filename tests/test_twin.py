@@ -36,6 +36,13 @@ def test_twin_sample_dimensions_and_layers(twin):
     for h in prep["layer_heights_mm"]:
         assert h == pytest.approx(8.0, abs=2.0 * 8.0 / 60.0 + 0.3)
     assert len(prep["particles_per_layer"]) == 2 and min(prep["particles_per_layer"]) > 50
+    # the interface diagnostics add up: lifts fill the sample, their own-grain packings
+    # average to the overall one, and no more surface grains sank than the surface course has
+    assert sum(prep["course_lift_heights_mm"]) == pytest.approx(prep["sample_height_mm"], rel=1e-9)
+    mean = np.dot(prep["course_lift_heights_mm"], prep["course_packing_fraction_per_lift"]) / prep["sample_height_mm"]
+    assert mean == pytest.approx(prep["packing_fraction"], abs=0.01)
+    assert 0 <= prep["grains_in_lower_course"][1] <= prep["particles_per_layer"][1]
+    assert prep["grains_in_lower_course"][0] == 0
 
 
 def test_twin_packing_overlap_and_containment(twin):
