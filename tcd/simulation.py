@@ -43,7 +43,7 @@ class SolverSettings:
     overlap_slop: interpenetration (fraction of the smallest diameter) left alone by the
     end-of-step position projection; projection_passes: its sweeps per step (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
-    (serial schedule; False: bond by bond, which converges badly on light grains)."""
+    (both schedules; False: bond by bond, which converges badly on light grains)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -320,21 +320,23 @@ class Simulation:
     def _solve_coloured(self) -> int:
         s = self.settings
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
-        need = ct.capacity + bd.capacity
+        blocks = 1 if s.bond_blocks else 0
+        nb = self.n if blocks else int(bd.total[None])
+        need = ct.capacity + (self.particles.capacity if blocks else bd.capacity)
         if self.colours is None or self.colours.capacity < need:
             release(self.colours)
             self.colours = acquire(ColourSet, need, self.particles.capacity)
         cs = self.colours
-        sk.colour_greedy(self.n, ct, bd, cs, self.stats)
+        sk.colour_greedy(self.n, ct, bd, cs, self.stats, blocks)
         if self.stats.colour_overflow[None]:
             raise CapacityError("contact colouring needs more than "
                                 f"{sk.MAX_COLOURS} colours (a body with that many contacts)")
         ncol = int(self.stats.colours[None])
-        items = int(bd.total[None] + ct.total[None])
+        items = nb + int(ct.total[None])
         sweeps, residual = 0, 0.0
         while True:
             for c in range(ncol):
-                sk.solve_colour(p, wl, ct, bd, cs, c)
+                sk.solve_colour(p, wl, ct, bd, cs, c, blocks)
             sweeps += 1
             if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
                 residual = sk.sweep_residual(cs, items)

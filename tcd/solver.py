@@ -5,9 +5,10 @@ increment is applied to the two bodies at once, so the contacts see each other i
 through the body velocities. Two schedules run the same local solves:
 - "serial": every sweep visits bonds then contacts in canonical order inside ONE kernel launch
   for all sweeps (no launch overhead; the true sequential NLGS). Best on a few CPU cores.
-- "coloured": bonds and contacts are greedily coloured so that one colour never shares a
-  dynamic body (walls excepted); the items of one colour are solved in parallel, colour after
-  colour, one launch per colour. For many-core devices (GPU).
+- "coloured": bond items (particle bond blocks, or single bonds) and contacts are greedily
+  coloured so that one colour never shares a dynamic body (walls excepted); the items of one
+  colour are solved in parallel, colour after colour, one launch per colour. For many-core
+  devices (GPU).
 - "partitioned" (`nlgs_partitioned`, opt-in, not used by Simulation): the serial order
   rearranged as (half 0, half 1, boundary) so the two halves run on two threads. Measured on
   2 CPU cores with 6300 contacts it is SLOWER than "serial" (one launch per sweep from Python
@@ -241,8 +242,11 @@ def particle_bond(bd: ti.template(), q, k):
 def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(), q):
     """Exact solve of the intact bonds of particle q (the star of q and its bonded
     neighbours, see above). A fixed particle (or locked rotation) keeps those unknowns at
-    zero: its bonds are then solved one by one."""
+    zero: its bonds are then solved one by one. Returns (sum |dR_b|, sum |R_b|) over its
+    intact bonds, for the coloured schedule's residual."""
     rq = p.radius[q]
+    dsum = 0.0
+    rsum = 0.0
     a = ti.Matrix.zero(float, 6, 6)
     g = ti.Vector.zero(float, 6)
     count = 0
@@ -298,6 +302,8 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
                 s, ahat, kb, e, o = bond_block_terms(p, wl, bd, b, q)
                 qb = -(kb @ (e + dv - ahat.cross(dw)))
                 bd.impulse[b] += s * qb
+                dsum += qb.norm()
+                rsum += bd.impulse[b].norm()
                 sum_q += qb
                 sum_t += ahat.cross(qb)
                 # the neighbour receives -Q_b at its contact point s r_o n
@@ -307,6 +313,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
                 p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
         p.v[q] = p.v[q] + sum_q * p.inv_mass[q]
         p.w[q] = p.w[q] + (p.inv_inertia[q] * rq) * sum_t
+    return dsum, rsum
 
 
 # --- step kernels ------------------------------------------------------------------------------
@@ -584,40 +591,90 @@ def nlgs_partitioned(p, wl, ct, bd, st, max_sweeps: int, tol: float, check_every
 
 
 # --- colouring for the parallel schedule -------------------------------------------------------
+@ti.func
+def block_mask(bd: ti.template(), cs: ti.template(), q, w):
+    """Colours (word w) used by the bodies of particle q's bond block: q and its intact
+    bonded neighbours; and the number of those bonds."""
+    used = cs.mask[q, w]
+    count = 0
+    for k in range(particle_bond_count(bd, q)):
+        b = particle_bond(bd, q, k)
+        if bd.state[b] == INTACT:
+            count += 1
+            used |= cs.mask[bd.i[b] + bd.j[b] - q, w]
+    return used, count
+
+
+@ti.func
+def block_mark(bd: ti.template(), cs: ti.template(), q, w, bit):
+    cs.mask[q, w] |= ti.u32(1) << ti.u32(bit)
+    for k in range(particle_bond_count(bd, q)):
+        b = particle_bond(bd, q, k)
+        if bd.state[b] == INTACT:
+            o = bd.i[b] + bd.j[b] - q
+            cs.mask[o, w] |= ti.u32(1) << ti.u32(bit)
+
+
 @ti.kernel
 def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
-                  st: ti.template()):
-    """Greedy colouring of bonds (first, so they always get the same colours) then contacts,
-    in canonical order; item q < nb is bond q, else contact q - nb. A counting sort then lists
-    the items colour by colour in `cs.order` (CSR `cs.start`, canonical order inside a colour).
-    Broken bonds get colour -1 and are left out. Sets st.colours and st.colour_overflow."""
+                  st: ti.template(), blocks: ti.template()):
+    """Greedy colouring of the bond items (first, so they always get the same colours) then
+    the contacts, in canonical order. `blocks` (static) 0: item q < nb is bond q; 1: item
+    q < n is the bond block of particle q (solve_particle_bonds: q and all its bonded
+    neighbours are its bodies, so one colour holds blocks two bonds apart at least). Then
+    contact q - nb (nb = n with blocks). A counting sort lists the items colour by colour in
+    `cs.order` (CSR `cs.start`, canonical order inside a colour). Broken bonds and particles
+    without intact bonds get colour -1 and are left out. Sets st.colours, st.colour_overflow."""
     for i in range(n):
         for w in ti.static(range(COLOUR_WORDS)):
             cs.mask[i, w] = ti.u32(0)
     for c in range(MAX_COLOURS + 1):
         cs.start[c] = 0
     nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
     nc = ct.total[None]
     ncol = 0
     overflow = 0
     ti.loop_config(serialize=True)
     for q in range(nb + nc):
-        i, j, active = item_bodies(ct, bd, q, nb)
+        i, j, active = 0, 0, 1
+        if ti.static(blocks == 1):
+            if q < nb:
+                i = q
+                _, count = block_mask(bd, cs, q, 0)
+                if count == 0:
+                    active = 0
+            else:
+                i, j = ct.i[q - nb], ct.j[q - nb]
+        else:
+            i, j, active = item_bodies(ct, bd, q, nb)
         col = -1
         if active == 1:
             for w in range(COLOUR_WORDS):
                 if col < 0:
-                    used = cs.mask[i, w]
-                    if j < n:
-                        used |= cs.mask[j, w]
+                    used = ti.u32(0)
+                    is_block = 0
+                    if ti.static(blocks == 1):
+                        if q < nb:
+                            is_block = 1
+                    if is_block == 1:
+                        used, _ = block_mask(bd, cs, q, w)
+                    else:
+                        used = cs.mask[i, w]
+                        if j < n:
+                            used |= cs.mask[j, w]
                     if used != ti.u32(0xFFFFFFFF):
                         bit = 0
                         while ((used >> ti.u32(bit)) & ti.u32(1)) == ti.u32(1):
                             bit += 1
                         col = w * 32 + bit
-                        cs.mask[i, w] |= ti.u32(1) << ti.u32(bit)
-                        if j < n:
-                            cs.mask[j, w] |= ti.u32(1) << ti.u32(bit)
+                        if is_block == 1:
+                            block_mark(bd, cs, q, w, bit)
+                        else:
+                            cs.mask[i, w] |= ti.u32(1) << ti.u32(bit)
+                            if j < n:
+                                cs.mask[j, w] |= ti.u32(1) << ti.u32(bit)
             if col < 0:
                 overflow = 1
                 col = 0
@@ -642,14 +699,19 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
 
 @ti.kernel
 def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-                 cs: ti.template(), c: ti.i32):
+                 cs: ti.template(), c: ti.i32, blocks: ti.template()):
     nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = p.count[None]
     for s in range(cs.start[c], cs.start[c + 1]):
         q = cs.order[s]
         da = 0.0
         ra = 0.0
         if q < nb:
-            da, ra = solve_bond(p, wl, bd, q)
+            if ti.static(blocks == 1):
+                da, ra = solve_particle_bonds(p, wl, bd, q)
+            else:
+                da, ra = solve_bond(p, wl, bd, q)
         else:
             da, ra = solve_contact(p, wl, ct, q - nb, p.count[None], 1)
         cs.change[q] = ti.Vector([da, ra])

@@ -288,8 +288,9 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
     kept.close()
 
 
-@pytest.mark.parametrize("mode", ["paper", "burgers"])
-def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode):
+@pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
+                                            ("burgers", "coloured")])
+def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule):
     """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two
     bonds share the load (F J / 2 of displacement, F / 2 each: one in tension, one in
     compression). Solved bond by bond at tolerance 1e-4 this stalls far from the answer (the
@@ -298,7 +299,8 @@ def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode):
     R, r, h = 0.008, 0.001, 2e-4
     x = np.array([[0.0, 0, 0], [R + r, 0, 0], [2 * (R + r), 0, 0]])
     sim = Simulation([R, r, R], x, fixed=[True, False, True],
-                     settings=SolverSettings(time_step=h, tolerance=1e-4, gravity=(0, 0, 0)),
+                     settings=SolverSettings(time_step=h, tolerance=1e-4, gravity=(0, 0, 0),
+                                             schedule=schedule),
                      bond_law=BondLaw(mode=mode), domain=((-0.01,) * 3, (0.03, 0.01, 0.01)))
     assert sim.create_bonds(gap_tolerance=1e-7) == 2
     F = 0.5                                          # N, far below the yield force (8.5 N)

@@ -70,30 +70,42 @@ def test_broad_phase_with_particles_outside_grid_and_growing_buffers():
     assert any("grid" in e for e in sim.grow_events)
 
 
-def test_colouring_never_shares_a_dynamic_body():
+@pytest.mark.parametrize("blocks", [False, True])
+def test_colouring_never_shares_a_dynamic_body(blocks):
+    """Items: bonds (or, with blocks, each particle's bond block: the particle and all its
+    bonded neighbours), then contacts. No two items of one colour share a dynamic body."""
     r, x = random_cloud(600, 4, box=0.04)
     wl = [walls.plane((0, 0, 0.0), (0, 0, 1)), walls.plane((0, 0, 0.04), (0, 0, -1))]
-    sim = Simulation(r, x, walls=wl, settings=SolverSettings(alert_ratio=0.5, schedule="coloured"),
+    sim = Simulation(r, x, walls=wl, settings=SolverSettings(alert_ratio=0.5, schedule="coloured",
+                                                             bond_blocks=blocks),
                      domain=((0, 0, 0), (0.04, 0.04, 0.04)))
     sim.create_bonds(gap_tolerance=0.0)             # overlapping pairs become bonds
     sim.step()                                       # colours bonds and contacts together
     cs, ct, bd = sim.colours, sim.contacts, sim.bonds
     nb, nc = int(bd.total[None]), int(ct.total[None])
     assert nb > 50 and nc > 50
-    col = cs.item_colour.to_numpy()[: nb + nc]
     bi, bj = bd.i.to_numpy()[:nb], bd.j.to_numpy()[:nb]
+    intact = bd.state.to_numpy()[:nb] == 0
     ci, cj = ct.i.to_numpy()[:nc], ct.j.to_numpy()[:nc]
-    ii, jj = np.concatenate([bi, ci]), np.concatenate([bj, cj])
-    state = np.concatenate([bd.state.to_numpy()[:nb], np.zeros(nc, int)])
-    active = state == 0
-    assert np.all(col[active] >= 0)
+    if blocks:
+        items = [[q] + [int(o) for o in np.concatenate([bj[(bi == q) & intact], bi[(bj == q) & intact]])]
+                 for q in range(sim.n)]
+        active = [len(b) > 1 for b in items]
+    else:
+        items = [[int(a), int(b)] for a, b in zip(bi, bj)]
+        active = list(intact)
+    assert sum(active) > 50
+    items += [[int(a)] + ([int(b)] if b < sim.n else []) for a, b in zip(ci, cj)]
+    active = np.array(active + [True] * nc)
+    col = cs.item_colour.to_numpy()[: len(items)]
+    assert np.all(col[active] >= 0) and np.all(col[~active] == -1)
     for c in np.unique(col[active]):
-        sel = active & (col == c)
-        bodies = np.concatenate([ii[sel], jj[sel][jj[sel] < sim.n]])
-        assert len(bodies) == len(np.unique(bodies)), f"colour {c} shares a body"
+        bodies = [b for q in np.nonzero(active & (col == c))[0] for b in items[q]]
+        assert len(bodies) == len(set(bodies)), f"colour {c} shares a body"
     # the colour lists hold every active item exactly once
     order = cs.order.to_numpy()[: int(cs.start[sim.stats.colours[None]])]
     assert sorted(order.tolist()) == np.nonzero(active)[0].tolist()
+    sim.close()
 
 
 # --- contact mechanics ---------------------------------------------------------------------------
