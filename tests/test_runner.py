@@ -157,3 +157,26 @@ def test_resume_restores_the_wall_forces_a_servo_plate_reads(tmp_path):
     a.step(5)
     b.step(5)
     assert np.array_equal(a.positions(), b.positions())
+
+
+def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_path):
+    """A study in two parts (prepare, then shear from the saved `prepared.h5` with `sample =`),
+    as scenarios/leutner_prepare.toml + leutner_shear.toml split scenarios/leutner.toml, gives
+    the same shear as preparing and shearing in one run."""
+    scenario, out = micro_run
+    prepared = out / "sample_3" / "prepared.h5"
+    head = MICRO[:MICRO.index('[[stage]]\nkind = "prepare"')]
+    shear = MICRO[MICRO.index('[[stage]]\nkind = "shear"'):]
+    text = head + shear.replace('kind = "shear"', f'kind = "shear"\nsample = "{prepared.as_posix()}"', 1)
+    part = tmp_path / "shear_only.toml"
+    part.write_text(text)
+    assert cli.main(["run", str(part), "--out", str(tmp_path / "two")]) == 0
+    one = io.read_series(out / "sample_3" / "shear_series.h5")
+    two = io.read_series(tmp_path / "two" / "sample_3" / "shear_series.h5")
+    assert len(one["shear_stress"]) == len(two["shear_stress"]) > 10
+    for key in ("displacement", "shear_stress", "bonds_intact", "bonds_broken_shear"):
+        assert np.array_equal(one[key], two[key]), key
+    a = json.loads((out / "sample_3" / "summary.json").read_text())
+    b = json.loads((tmp_path / "two" / "sample_3" / "summary.json").read_text())
+    assert a["bonds_total"] == b["bonds_total"] > 0
+    assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
