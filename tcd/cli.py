@@ -224,9 +224,23 @@ def cmd_bench(args) -> int:
             options["sample"] = args.sample
         if args.time is not None:       # else the benchmark's own duration
             options["time"] = args.time
-        result = run(**options)
+        result = median_run(run, options, args.repeat)
     _print_result(result, args.json)
     return 0
+
+
+def median_run(run, options: dict, repeat: int) -> dict:
+    """Run a benchmark `repeat` times with the same options (each run builds its own system;
+    compilation is excluded from every timing) and return the run whose time per particle-step
+    is the median, with every run's figure under `repeats_seconds_per_particle_step`."""
+    runs = [run(**options) for _ in range(repeat)]
+    if repeat == 1:
+        return runs[0]
+    order = sorted(range(repeat), key=lambda k: runs[k]["seconds_per_particle_step"])
+    result = dict(runs[order[(repeat - 1) // 2]])
+    result["repeats"] = repeat
+    result["repeats_seconds_per_particle_step"] = [r["seconds_per_particle_step"] for r in runs]
+    return result
 
 
 # --- parser --------------------------------------------------------------------------------------
@@ -332,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
         b.add_argument("--tolerance", type=_positive_float, default=1e-4)
         b.add_argument("--seed", type=int, default=1)
         b.add_argument("--json", action="store_true", help="print JSON instead of a table")
+        b.add_argument("--repeat", type=_positive_int, default=1, metavar="N",
+                       help="run N times and report the median run (all N figures listed)")
         if name == "shear":
             b.add_argument("--sample", default=None, metavar="FILE.h5",
                            help="a prepared sample (prepared.h5 of a run) instead of a generated one")

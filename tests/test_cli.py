@@ -233,6 +233,24 @@ def test_bench_passes_keyword_options(argv, expected, stub, capsys):
     assert "seconds_per_particle_step  1.25e-06" in table and "bed.top" in table
 
 
+def test_bench_repeat_reports_the_median_run(stub, capsys):
+    figures = iter([3e-6, 1e-6, 2e-6])
+    calls = []
+
+    def pour(**kwargs):
+        calls.append(kwargs)
+        value = next(figures)
+        return {"benchmark": "pour", "seconds_per_particle_step": value, "run": value}
+    stub("bench", pour=pour)
+    assert main(["bench", "pour", "--particles", "50", "--repeat", "3", "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert len(calls) == 3 and all(c == calls[0] for c in calls)
+    assert printed["seconds_per_particle_step"] == 2e-6 and printed["run"] == 2e-6
+    assert printed["repeats"] == 3
+    assert printed["repeats_seconds_per_particle_step"] == [3e-6, 1e-6, 2e-6]
+    assert main(["bench", "pour", "--repeat", "0"]) == 2
+
+
 def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backend, monkeypatch):
     arch, precision = backend
     states = tmp_path / "states.h5"
