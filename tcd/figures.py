@@ -452,9 +452,16 @@ def _frame_stages(states_path: Path) -> list[tuple[float, str]]:
     return out
 
 
+EARLY_FRACTION = 0.1     # Fig. 3's early frame: this far from the shear's start to its peak
+
+
 def render_frames(stages: list[tuple[float, str]], peak_time: float) -> tuple[int, list[int]]:
-    """Frames for Fig. 2 (last "prepare" frame, else 0) and Fig. 3 (first "shear" frame and
-    the shear frame closest in time to the peak; empty when there is no shear frame)."""
+    """Frames for Fig. 2 (last "prepare" frame, else 0) and Fig. 3 (early in the shear, and the
+    shear frame closest in time to the peak; empty when there is no shear frame). "Early" is
+    the first shear frame at least EARLY_FRACTION of the way from the start of the shear to
+    the peak (to the last frame without a peak): on the rising branch, once the grains answer
+    the ring, not the frames of the first steps, which show the bonded sample settling under
+    its weight. It falls back to the first shear frame when that one would be the peak's."""
     prepare = [k for k, (_, stage) in enumerate(stages) if stage == "prepare"]
     shear = [k for k, (_, stage) in enumerate(stages) if stage == "shear"]
     sample_frame = prepare[-1] if prepare else 0
@@ -464,7 +471,11 @@ def render_frames(stages: list[tuple[float, str]], peak_time: float) -> tuple[in
         at_peak = min(shear, key=lambda k: abs(stages[k][0] - peak_time))
     else:
         at_peak = shear[-1]
-    return sample_frame, [shear[0], at_peak]
+    t0 = stages[shear[0]][0]
+    t_ref = stages[at_peak][0] if math.isfinite(peak_time) else stages[shear[-1]][0]
+    early = [k for k in shear if stages[k][0] >= t0 + EARLY_FRACTION * (t_ref - t0)]
+    start = early[0] if early and early[0] != at_peak else shear[0]
+    return sample_frame, [start, at_peak]
 
 
 def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -> None:

@@ -1180,10 +1180,43 @@ def figure_sample(path, out, frame=0, *, width=1600, height=1200) -> None:
                              width=width, height=height), out)
 
 
+def driving_speed(frames: list) -> float:
+    """Speed (m/s) of the fastest-moving wall between the first and the last of `frames`
+    (loaded frames with the same walls): the imposed velocity of the shear ring. 0.0 when
+    there is one frame, no time between them, or no wall moved."""
+    if len(frames) < 2:
+        return 0.0
+    a, b = frames[0], frames[-1]
+    dt = b["time"] - a["time"]
+    pa, pb = np.asarray(a["wall_point"]), np.asarray(b["wall_point"])
+    if not (dt > 0.0) or pa.shape != pb.shape or not len(pa):
+        return 0.0
+    return float(np.max(np.linalg.norm(pb - pa, axis=1)) / dt)
+
+
+def ring_offset(frame: dict) -> float:
+    """Largest horizontal offset (m) of a cylinder's axis from the vertical z axis in a frame:
+    how far the shear ring has moved (the mould and the rings start on the z axis)."""
+    kind, point = np.asarray(frame["wall_kind"]), np.asarray(frame["wall_point"])
+    cyl = kind == CYLINDER
+    return float(np.max(np.hypot(point[cyl, 0], point[cyl, 1]))) if np.any(cyl) else 0.0
+
+
+VELOCITY_RANGE = (0.0, 1.25)     # v_x / v_ring shown in Fig. 3: at rest .. the ring, and a bit
+ARROW_CAP = 3.0                  # arrows of grains faster than this many ring speeds are capped
+
+
 def figure_velocity(path, out, frames, *, panel_width=900) -> None:
-    """Paper Fig. 3: grain speed on the vertical section through the axis (xz) at the given
-    frames (e.g. start of shear and failure), panels side by side, one colour bar; arrows of
-    (vx, vz) for the grains cut by the section, scaled per panel (see each panel's key)."""
+    """Paper Fig. 3: the velocity field on the vertical section through the axis (xz) at the
+    given frames (e.g. early in the shear and at failure), panels side by side, one colour bar.
+
+    When a wall moves between the first and the last frame (the shear ring), the colour is each
+    grain's velocity along x over the ring's speed (0: at rest, 1: moving with the ring; the
+    paper's "upper half moves as one block"), and the arrows of (vx, vz) for the grains cut by
+    the section share one scale, the ring's speed as reference, capped at ARROW_CAP ring speeds
+    (free small grains falling through the pores move at up to ~1 m/s, 1000 ring speeds).
+    Otherwise the colour is the speed up to its 99th percentile and the arrows are scaled per
+    panel."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     import matplotlib
@@ -1191,12 +1224,22 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
     loaded = [load_frame(path, k) for k in frames]
     if not loaded:
         raise ValueError("figure_velocity needs at least one frame")
-    speeds = np.concatenate([particle_values(fr, "speed") for fr in loaded])
-    # the colour scale ends at the 99th percentile: a few free small grains falling through
-    # the pores (up to ~1 m/s) would otherwise leave the whole sample at the bottom colour
-    finite = speeds[np.isfinite(speeds)]
-    top = float(np.percentile(finite, 99)) if finite.size else 0.0
-    value_range = (0.0, top) if top > 0.0 else default_range("speed", speeds)
+    ring = driving_speed(loaded)
+    if ring > 0.0:
+        mode, cmap, value_range = "vx", "viridis", VELOCITY_RANGE
+        label = f"$v_x$ / ring speed (ring: {ring * 1e3:.3g} mm/s)"
+        values = [fr["v"][:, 0] / ring for fr in loaded]
+    else:
+        speeds = [particle_values(fr, "speed") for fr in loaded]
+        every = np.concatenate(speeds)
+        finite = every[np.isfinite(every)]
+        # the colour scale ends at the 99th percentile: a few free small grains falling through
+        # the pores (up to ~1 m/s) would otherwise leave the whole sample at the bottom colour
+        top = float(np.percentile(finite, 99)) if finite.size else 0.0
+        mode, cmap = "speed", COLORMAPS["speed"]
+        value_range = (0.0, top) if top > 0.0 else default_range("speed", every)
+        label = "speed |v| (mm/s), top: 99th percentile"
+        values = speeds
     first = loaded[0]
     walls = WallSet.from_frame(first)
     plane = resolve_section("xz", first["x"], walls)
@@ -1215,8 +1258,9 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
                  layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(loaded), squeeze=False)[0]
-    for ax, fr, k in zip(axes, loaded, frames):
-        colors, scale = particle_colors(fr, "speed", value_range)
+    norm = matplotlib.colors.Normalize(*value_range)
+    for ax, fr, k, vals in zip(axes, loaded, frames, values):
+        colors = matplotlib.colormaps[cmap](np.clip(norm(np.nan_to_num(vals)), 0, 1))[:, :3]
         image, _, _ = _render(fr["x"], fr["radius"], colors, width=width, height=height,
                               camera=cam, section=plane, walls=WallSet.from_frame(fr),
                               background=(1, 1, 1))
@@ -1226,21 +1270,33 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
         if np.any(near):
             pu, pv = fr["x"][near] @ right * 1e3, fr["x"][near] @ up * 1e3
             vu, vv = fr["v"][near] @ right, fr["v"][near] @ up
-            vmax = float(np.max(np.hypot(vu, vv)))
-            if vmax > 0.0:
-                ref = _nice_length(vmax)
+            length = np.hypot(vu, vv)
+            ref = ring if ring > 0.0 else _nice_length(float(np.max(length))) if np.max(length) > 0 else 0.0
+            if ref > 0.0:
+                if ring > 0.0:
+                    cap = np.maximum(length / (ARROW_CAP * ring), 1.0)
+                    vu, vv = vu / cap, vv / cap
+                    key = "ring speed"
+                else:
+                    key = f"{ref * 1e3:g} mm/s"
                 q = ax.quiver(pu, pv, vu, vv, angles="xy", scale_units="xy",
-                              scale=vmax / (0.06 * (extent[1] - extent[0])), width=0.004,
+                              scale=ref / (0.05 * (extent[1] - extent[0])), width=0.004,
                               color="k", alpha=0.8)
-                ax.quiverkey(q, 0.80, 1.03, ref, f"{ref * 1e3:g} mm/s", labelpos="E",
-                             coordinates="axes", fontproperties={"size": 8})
-        ax.set_title(f"frame {k}: {_frame_title(fr)}", fontsize=9, loc="left")
+                ax.quiverkey(q, 0.78, 1.03, ref, key, labelpos="E", coordinates="axes",
+                             fontproperties={"size": 8})
+        title = f"frame {k}: {_frame_title(fr)}"
+        if ring > 0.0:
+            title = f"frame {k}: ring moved {ring_offset(fr) * 1e3:.2f} mm (t = {fr['time']:.4g} s)"
+        ax.set_title(title, fontsize=9, loc="left")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("z (mm)")
-    norm = matplotlib.colors.Normalize(*value_range)
-    cb = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=COLORMAPS["speed"]),
-                      ax=list(axes), shrink=0.9, extend="max")
-    cb.set_label("speed |v| (mm/s), top: 99th percentile")
+    cb = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap),
+                      ax=list(axes), shrink=0.9, extend="both" if mode == "vx" else "max")
+    cb.set_label(label)
+    if ring > 0.0:
+        fig.suptitle(f"velocity of the grains cut by the vertical section through the axis; "
+                     f"arrows ($v_x$, $v_z$) on one scale, capped at {ARROW_CAP:g} ring speeds",
+                     fontsize=9)
     with atomic_output(out) as tmp:
         fig.savefig(tmp, format=Path(out).suffix.lstrip(".") or "png")
 

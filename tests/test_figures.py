@@ -184,8 +184,13 @@ def test_make_figures_without_usable_series_names_the_directory(tmp_path):
 def test_render_frames_choose_prepared_and_peak_frames():
     stages = [(0.0, "prepare"), (1.0, "prepare"), (2.0, "shear"), (2.5, "shear"),
               (3.0, "shear"), (4.0, "shear")]
-    assert render_frames(stages, 2.9) == (1, [2, 4])
-    assert render_frames(stages, math.nan) == (1, [2, 5])
+    assert render_frames(stages, 2.9) == (1, [3, 4])      # early (10 % of the way), peak
+    assert render_frames(stages, math.nan) == (1, [3, 5])
+    assert render_frames(stages, 2.4) == (1, [2, 3])      # early would be the peak's frame
+    # the frames of the first steps (the bonded sample settling) are not "early"
+    steps = [(0.0, "prepare"), (3.44, "shear"), (3.4402, "shear"), (3.5, "shear"),
+             (3.75, "shear"), (4.0, "shear"), (6.25, "shear"), (6.44, "shear")]
+    assert render_frames(steps, 6.2) == (0, [4, 6])
     assert render_frames([(0.0, "pour"), (1.0, "pour")], 1.0) == (0, [])
 
 
@@ -216,7 +221,7 @@ def test_make_figures_renders_fig2_and_fig3_at_the_right_frames(tmp_path, monkey
     monkeypatch.setattr(render, "figure_velocity", fake("fig3"))
     written = make_figures(run)
     assert calls["fig2"] == (run / "sample_7" / "states.h5", 1)   # last "prepare" frame
-    assert calls["fig3"][1] == [2, 4]                              # first shear, nearest peak
+    assert calls["fig3"][1] == [3, 4]                              # early shear, nearest peak
     assert {"fig2_sample.png", "fig3_velocity.png"} <= {p.name for p in written}
 
 

@@ -254,6 +254,52 @@ def test_figures_are_written(states, tmp_path):
     assert fig3.shape[1] > fig3.shape[0] > 100, "two panels side by side"
 
 
+def test_fig3_colours_grains_by_their_velocity_over_the_ring_speed(tmp_path):
+    """With a ring moving between the frames, Fig. 3 colours v_x / v_ring on a fixed scale:
+    grains moving with the ring take the top colour, grains at rest the bottom one, whatever
+    a free grain elsewhere does."""
+    path = tmp_path / "states.h5"
+    n, ring_v = 2, 1e-3
+    with h5py.File(path, "w") as f:
+        f.attrs.update(schema_version=1, tcd_version="test", scenario="")
+        for k, t in enumerate((0.0, 0.5, 1.0)):
+            g = f.create_group(f"frames/{k:06d}")
+            g.attrs.update(time=t, step=k, stage="shear")
+            g["particles/x"] = np.array([[0.0, 0.0, 0.01], [0.0, 0.0, 0.03]])
+            v = np.zeros((n, 3))
+            v[1, 0] = ring_v * min(k, 1)                 # the upper grain moves with the ring
+            g["particles/v"] = v
+            g["particles/radius"] = np.full(n, 0.01)
+            g["walls/kind"] = np.array([0, 1, 1], np.int32)
+            g["walls/point"] = np.array([[0, 0, 0], [0, 0, 0], [ring_v * t, 0, 0.02]], float)
+            g["walls/direction"] = np.array([[0, 0, 1], [0, 0, 1], [0, 0, 1]], float)
+            g["walls/radius"] = np.full(3, 0.02)
+            g["walls/extent"] = np.array([[0, 0], [0, 0.02], [0, 0.02]], float)
+            g["walls/force"] = np.zeros((3, 3))
+    frames = [render.load_frame(path, k) for k in (1, 2)]
+    assert render.driving_speed(frames) == pytest.approx(ring_v)
+    assert render.driving_speed(frames[:1]) == 0.0
+    assert render.ring_offset(frames[1]) == pytest.approx(ring_v * 1.0)
+    seen = {}
+    real_render = render._render
+
+    def spy(x, radius, colors, **kw):
+        seen.setdefault("colors", []).append(np.array(colors))
+        return real_render(x, radius, colors, **kw)
+    import matplotlib
+    cmap = matplotlib.colormaps["viridis"]
+    lo, hi = render.VELOCITY_RANGE
+    try:
+        render._render = spy
+        render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=80)
+    finally:
+        render._render = real_render
+    for colors in seen["colors"]:
+        assert np.allclose(colors[0], cmap((0.0 - lo) / (hi - lo))[:3])    # at rest
+        assert np.allclose(colors[1], cmap((1.0 - lo) / (hi - lo))[:3])    # with the ring
+    assert iio.imread(tmp_path / "fig3.png").shape[1] > 100
+
+
 def test_viewer_without_display_points_to_offscreen_render(states, monkeypatch):
     from tcd import viewer
     monkeypatch.delenv("DISPLAY", raising=False)
