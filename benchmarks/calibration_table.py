@@ -7,7 +7,8 @@ sample of each run directory, read from the run's `scenario.toml`, `summary.json
 Columns: yield stress, ring friction, bond gap tolerance, solver tolerance of the shear, the
 smoothed peak (stress, displacement), the raw stress at the `--at` displacements, bonds broken,
 the fraction of the broken bonds near the shear plane and whether the run reached its end.
-An unfinished run (no summary yet) is listed from its series so far, marked "running".
+A sample still running is listed from its series so far, marked "running"; a finished sample
+of a run still going on is read from its own summary.json.
 """
 import argparse
 import csv
@@ -52,6 +53,9 @@ def rows_of(run: pathlib.Path, at: list[float]) -> list[list[str]]:
         for d in at:
             k = np.searchsorted(d_mm, d - 1e-9)
             raw.append(f"{tau[k]:.3f}" if k < len(tau) else "")
+        own = sample / "summary.json"         # a finished sample of a run still going on
+        if seed not in summary and own.exists():
+            summary[seed] = json.loads(own.read_text())
         s = summary.get(seed, {}).get("stages", {})
         sh = next((v for k, v in s.items() if k.endswith(":shear")), None)
         if sh:

@@ -50,3 +50,12 @@ def test_not_a_run_directory_is_named(table, tmp_path, capsys):
     with pytest.raises(SystemExit):
         table.main([str(tmp_path)])
     assert "no scenario.toml" in capsys.readouterr().err
+
+
+def test_finished_sample_of_a_running_study_is_read_from_its_own_summary(table, tmp_path):
+    run = _run(tmp_path, "c", False)
+    sh = {"tau_peak_MPa": 0.9, "d_peak_mm": 2.25, "bonds_broken": 7, "bonds_total": 70,
+          "broken_near_plane_fraction": 0.5}
+    (run / "sample_3" / "summary.json").write_text(json.dumps({"seed": 3, "stages": {"0:shear": sh}}))
+    row = table.rows_of(run, [1.0])[0]
+    assert row[6] == "0.900 at 2.25" and row[-3:] == ["7 / 70", "0.50", "done"]
