@@ -1,0 +1,48 @@
+"""benchmarks/study_table.py lists a finished study from its summary.json: rows per sample,
+then mean and std, the paper, the experiments and the relative errors as the runner wrote them."""
+import importlib.util
+import json
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def table():
+    spec = importlib.util.spec_from_file_location("study_table", ROOT / "benchmarks" / "study_table.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _sample(seed, tau, d):
+    return {"seed": seed, "stages": {"0:shear": {
+        "particles": 5857, "tau_peak_MPa": tau, "d_peak_mm": d, "residual_MPa": 0.7,
+        "bonds_broken": 30, "bonds_broken_tension": 10, "bonds_broken_shear": 20, "bonds_total": 100,
+        "broken_near_plane_fraction": 0.7, "bonds_near_plane_fraction": 0.3,
+        "upper_mean_dx_over_ring": 0.84, "lower_mean_dx_over_ring": 0.15,
+        "kinetic_over_work_max": 2.4e-4, "wall_time_s": 1500.4}}}
+
+
+def test_rows_and_summary_lines(table, tmp_path, capsys):
+    summary = {"samples": [_sample(1, 0.9, 2.3), _sample(2, 1.0, 2.1)],
+               "mean": {"tau_peak_MPa": 0.95, "d_peak_mm": 2.2, "residual_MPa": 0.7},
+               "std": {"tau_peak_MPa": 0.05, "d_peak_mm": 0.1, "residual_MPa": 0.0},
+               "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
+               "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2},
+               "relative_error": {"tau_peak": 0.95 / 0.898 - 1, "d_peak": 2.2 / 2.37 - 1}}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    assert table.main([str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 + 2 + 4
+    assert lines[2].startswith("| 1 | 5857 | 0.900 | 2.30 | 0.700 | 30 (10 + 20) / 100 | 0.70 (0.30) | 0.84 / 0.15 | 2.4e-04 | 1500 |")
+    assert "| mean ± std |  | 0.950 ± 0.050 | 2.20 ± 0.10 |" in lines[4]
+    assert "+5.8 %" in lines[7] and "-7.2 %" in lines[7]
+
+
+def test_unfinished_run_is_refused(table, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        table.main([str(tmp_path)])
+    assert "no summary.json" in capsys.readouterr().err
