@@ -17,7 +17,9 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import signal
 import sys
+import threading
 import time
 
 import numpy as np
@@ -129,7 +131,42 @@ def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progres
     return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
+class DeferredInterrupt:
+    """Ctrl-C (SIGINT) during a run takes effect at the end of the current step: the step loop
+    writes a checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes
+    from where it was stopped (not from the last periodic checkpoint, or from nothing when none
+    was written yet). A second Ctrl-C stops at once. Installed only where Python's own SIGINT
+    handler is in force, in the main thread (a run started with SIGINT ignored keeps ignoring)."""
+
+    def __init__(self):
+        self.pending = False
+        self._old = None
+
+    def _handler(self, signum, frame):
+        if self.pending:
+            raise KeyboardInterrupt
+        self.pending = True
+
+    def __enter__(self):
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
 def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
+    with DeferredInterrupt() as interrupt:
+        return _run_sample(scn, seed, sample_dir, resume=resume, progress=progress,
+                           interrupt=interrupt)
+
+
+def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool,
+                interrupt: DeferredInterrupt) -> dict:
     sample_dir.mkdir(parents=True, exist_ok=True)
     ck_path = sample_dir / "checkpoint.h5"
     states = sample_dir / "states.h5"
@@ -206,10 +243,14 @@ def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progre
                         and step_in_phase % SETTLE_CHECK_EVERY == 0
                         and settled(sim, getattr(stage, "settle_speed", 0.005))):
                     break
-                if time.perf_counter() - last_ck >= scn.output.checkpoint_every_s:
+                if (interrupt.pending
+                        or time.perf_counter() - last_ck >= scn.output.checkpoint_every_s):
                     result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
                     checkpoint()
                     last_ck = time.perf_counter()
+                    if interrupt.pending:
+                        bar.close()
+                        raise KeyboardInterrupt
             bar.close()
             result.setdefault("phases", []).append({"stage": stage.kind, "phase": phase.name,
                                                     "steps": step_in_phase, "end_time": sim.time,

@@ -180,3 +180,36 @@ def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_
     b = json.loads((tmp_path / "two" / "sample_3" / "summary.json").read_text())
     assert a["bonds_total"] == b["bonds_total"] > 0
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
+
+
+def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(micro_run, tmp_path,
+                                                                                monkeypatch):
+    """Ctrl-C takes effect at the end of the step: a checkpoint of that step is written (here no
+    periodic one would have been), the run raises KeyboardInterrupt, and --resume ends with the
+    same numbers as the uninterrupted run."""
+    from tcd import config, runner
+    from tcd.simulation import Simulation
+    scenario, out = micro_run
+    text = MICRO.replace("checkpoint_every_s = 0.5", "checkpoint_every_s = 1e6")
+    scn = config.parse_scenario(text, "<micro>")
+    real_step = Simulation.step
+    calls = {"n": 0}
+
+    def step_then_ctrl_c(self, count=1):
+        calls["n"] += 1
+        if calls["n"] == 37:
+            os.kill(os.getpid(), signal.SIGINT)      # arrives inside the loop, between steps
+        return real_step(self, count)
+    monkeypatch.setattr(Simulation, "step", step_then_ctrl_c)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_sample(scn, 3, tmp_path / "sample_3", resume=False, progress=False)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # handler restored
+    _, meta = io.load_checkpoint(tmp_path / "sample_3" / "checkpoint.h5")
+    assert meta["step"] == 37
+    monkeypatch.setattr(Simulation, "step", real_step)
+    runner.run_sample(scn, 3, tmp_path / "sample_3", resume=True, progress=False)
+    one = io.read_series(out / "sample_3" / "shear_series.h5")
+    two = io.read_series(tmp_path / "sample_3" / "shear_series.h5")
+    for key in ("displacement", "shear_stress", "bonds_intact"):
+        assert np.array_equal(one[key], two[key]), key
