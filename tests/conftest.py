@@ -30,3 +30,18 @@ def precision(backend):
 def tol(precision):
     """Relative tolerance for quantities that are exact up to rounding."""
     return 1e-9 if precision == "f64" else 2e-4
+
+
+@pytest.fixture(scope="session")
+def benchmark_script():
+    """load(name): the module benchmarks/<name>.py (scripts, not a package), imported by path."""
+    import importlib.util
+    import pathlib
+    root = pathlib.Path(__file__).resolve().parents[1]
+
+    def load(name):
+        spec = importlib.util.spec_from_file_location(name, root / "benchmarks" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    return load

@@ -1,20 +1,13 @@
 """benchmarks/calibration_table.py reads run directories without running anything: a finished
 run gives its settings, peak and raw stresses; an unfinished one is listed as running."""
-import importlib.util
 import json
-import pathlib
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def table():
-    spec = importlib.util.spec_from_file_location("calibration_table", ROOT / "benchmarks" / "calibration_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def table(benchmark_script):
+    return benchmark_script("calibration_table")
 
 
 def _run(tmp_path, name, finished):

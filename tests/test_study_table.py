@@ -1,20 +1,13 @@
 """benchmarks/study_table.py lists a finished study from its summary.json: rows per sample,
 then mean and std, the paper, the experiments and the relative errors as the runner wrote them."""
-import importlib.util
 import json
-import pathlib
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def table():
-    spec = importlib.util.spec_from_file_location("study_table", ROOT / "benchmarks" / "study_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def table(benchmark_script):
+    return benchmark_script("study_table")
 
 
 def _sample(seed, tau, d):
