@@ -201,10 +201,14 @@ def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(m
             os.kill(os.getpid(), signal.SIGINT)      # arrives inside the loop, between steps
         return real_step(self, count)
     monkeypatch.setattr(Simulation, "step", step_then_ctrl_c)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    with pytest.raises(KeyboardInterrupt):
-        runner.run_sample(scn, 3, tmp_path / "sample_3", resume=False, progress=False)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # handler restored
+    # as in a terminal: Python's own handler (a background shell, as CI may be, ignores SIGINT)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            runner.run_sample(scn, 3, tmp_path / "sample_3", resume=False, progress=False)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+    finally:
+        signal.signal(signal.SIGINT, outer)
     _, meta = io.load_checkpoint(tmp_path / "sample_3" / "checkpoint.h5")
     assert meta["step"] == 37
     monkeypatch.setattr(Simulation, "step", real_step)
