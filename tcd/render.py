@@ -979,14 +979,20 @@ def particle_colors(frame: dict, mode: str, value_range=None):
         # a small per-grain brightness jitter (fixed by index) keeps touching grains apart
         jitter = 1.0 + 0.10 * (((np.arange(n) * 2654435761) % 1000) / 1000.0 - 0.5)
         return np.clip(LAYER_COLORS[layer] * jitter[:, None], 0, 1), None
-    import matplotlib
     values = particle_values(frame, mode)
     lo, hi = default_range(mode, values) if value_range is None else value_range
     scale = color_scale(mode, (lo, hi))
+    return value_colors(values, scale.cmap, lo, hi), scale
+
+
+def value_colors(values, cmap: str, lo: float, hi: float) -> np.ndarray:
+    """Colours (N,3) of `values` on colormap `cmap` over [lo, hi] (clipped at both ends);
+    non-finite values (a grain without bonds) get NO_BOND_COLOR."""
+    import matplotlib
     unit = (values - lo) / (hi - lo if hi > lo else 1.0)
-    colors = matplotlib.colormaps[scale.cmap](np.clip(np.nan_to_num(unit), 0, 1))[:, :3]
+    colors = matplotlib.colormaps[cmap](np.clip(np.nan_to_num(unit), 0, 1))[:, :3]
     colors[~np.isfinite(values)] = NO_BOND_COLOR
-    return colors, scale
+    return colors
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1258,9 +1264,8 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
                  layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(loaded), squeeze=False)[0]
-    norm = matplotlib.colors.Normalize(*value_range)
     for ax, fr, k, vals in zip(axes, loaded, frames, values):
-        colors = matplotlib.colormaps[cmap](np.clip(norm(np.nan_to_num(vals)), 0, 1))[:, :3]
+        colors = value_colors(vals, cmap, *value_range)
         image, _, _ = _render(fr["x"], fr["radius"], colors, width=width, height=height,
                               camera=cam, section=plane, walls=WallSet.from_frame(fr),
                               background=(1, 1, 1))
@@ -1271,25 +1276,28 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
             pu, pv = fr["x"][near] @ right * 1e3, fr["x"][near] @ up * 1e3
             vu, vv = fr["v"][near] @ right, fr["v"][near] @ up
             length = np.hypot(vu, vv)
-            ref = ring if ring > 0.0 else _nice_length(float(np.max(length))) if np.max(length) > 0 else 0.0
+            if ring > 0.0:      # one scale for all panels: the ring's speed is 5 % of the width
+                cap = np.maximum(length / (ARROW_CAP * ring), 1.0)
+                vu, vv = vu / cap, vv / cap
+                ref, key, span, x_key = ring, "ring speed", (ring, 0.05), 0.78
+            else:               # per panel: the fastest grain's arrow is 6 % of the width
+                vmax = float(np.max(length))
+                ref = _nice_length(vmax) if vmax > 0.0 else 0.0
+                key, span, x_key = f"{ref * 1e3:g} mm/s", (vmax, 0.06), 0.80
             if ref > 0.0:
-                if ring > 0.0:
-                    cap = np.maximum(length / (ARROW_CAP * ring), 1.0)
-                    vu, vv = vu / cap, vv / cap
-                    key = "ring speed"
-                else:
-                    key = f"{ref * 1e3:g} mm/s"
                 q = ax.quiver(pu, pv, vu, vv, angles="xy", scale_units="xy",
-                              scale=ref / (0.05 * (extent[1] - extent[0])), width=0.004,
+                              scale=span[0] / (span[1] * (extent[1] - extent[0])), width=0.004,
                               color="k", alpha=0.8)
-                ax.quiverkey(q, 0.78, 1.03, ref, key, labelpos="E", coordinates="axes",
+                ax.quiverkey(q, x_key, 1.03, ref, key, labelpos="E", coordinates="axes",
                              fontproperties={"size": 8})
-        title = f"frame {k}: {_frame_title(fr)}"
         if ring > 0.0:
             title = f"frame {k}: ring moved {ring_offset(fr) * 1e3:.2f} mm (t = {fr['time']:.4g} s)"
+        else:
+            title = f"frame {k}: {_frame_title(fr)}"
         ax.set_title(title, fontsize=9, loc="left")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("z (mm)")
+    norm = matplotlib.colors.Normalize(*value_range)
     cb = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap),
                       ax=list(axes), shrink=0.9, extend="both" if mode == "vx" else "max")
     cb.set_label(label)
