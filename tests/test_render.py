@@ -254,10 +254,9 @@ def test_figures_are_written(states, tmp_path):
     assert fig3.shape[1] > fig3.shape[0] > 100, "two panels side by side"
 
 
-def test_fig3_colours_grains_by_their_velocity_over_the_ring_speed(tmp_path):
+def test_fig3_colours_grains_by_their_velocity_over_the_ring_speed(tmp_path, monkeypatch):
     """With a ring moving between the frames, Fig. 3 colours v_x / v_ring on a fixed scale:
-    grains moving with the ring take the top colour, grains at rest the bottom one, whatever
-    a free grain elsewhere does."""
+    a grain moving with the ring takes the colour of 1, a grain at rest the colour of 0."""
     path = tmp_path / "states.h5"
     n, ring_v = 2, 1e-3
     with h5py.File(path, "w") as f:
@@ -289,11 +288,8 @@ def test_fig3_colours_grains_by_their_velocity_over_the_ring_speed(tmp_path):
     import matplotlib
     cmap = matplotlib.colormaps["viridis"]
     lo, hi = render.VELOCITY_RANGE
-    try:
-        render._render = spy
-        render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=80)
-    finally:
-        render._render = real_render
+    monkeypatch.setattr(render, "_render", spy)
+    render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=80)
     for colors in seen["colors"]:
         assert np.allclose(colors[0], cmap((0.0 - lo) / (hi - lo))[:3])    # at rest
         assert np.allclose(colors[1], cmap((1.0 - lo) / (hi - lo))[:3])    # with the ring
