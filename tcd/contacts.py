@@ -10,6 +10,10 @@ smaller than the table has no collisions at all. A large sphere thus spans sever
 small cells, which keeps the cost near-linear for the 8:1 size ratio of asphalt mixtures. A pair
 (i, j), i < j, is examined only from the first cell common to both boxes, so it is found once.
 Cells outside the grid are clamped to its border: still correct, only slower.
+Batched systems (Simulation.batch) share the grid's geometry but not its cells: system s's cells
+are numbered after those of systems 0..s-1 (a virtual grid per system), so two systems never
+meet in the broad phase even when they occupy the same space, and a wall tagged with a system
+only touches that system's particles.
 
 Contact building is two-pass per particle (count, scan, fill), then each particle's partner list
 is sorted, which makes the contact order canonical (i ascending, j ascending, walls last) and
@@ -40,6 +44,18 @@ def cell_index(g: ti.template(), c):
 
 
 @ti.func
+def system_cells(g: ti.template(), p: ti.template(), i):
+    """Offset of particle i's system in the virtual cell numbering (0 for system 0)."""
+    return p.system[i] * (g.dims[None][0] * g.dims[None][1] * g.dims[None][2])
+
+
+@ti.func
+def touches(wl: ti.template(), p: ti.template(), k, i):
+    """Wall k acts on particle i: untagged (-1) or tagged with i's system."""
+    return wl.system[k] < 0 or wl.system[k] == p.system[i]
+
+
+@ti.func
 def bucket_of(g: ti.template(), linear):
     return linear & (g.buckets[None] - 1)
 
@@ -67,10 +83,11 @@ def grid_walk(p: ti.template(), g: ti.template(), half_alert: float, h: float,
         g.cell_count[c] = 0
     for i in range(p.count[None]):
         lo, hi = box_cells(g, p, i, half_alert, h)
+        offset = system_cells(g, p, i)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
-                    c = cell_index(g, ti.Vector([cx, cy, cz]))
+                    c = cell_index(g, ti.Vector([cx, cy, cz])) + offset
                     b = bucket_of(g, c)
                     slot = ti.atomic_add(g.cell_count[b], 1)
                     if ti.static(scatter):
@@ -166,11 +183,12 @@ def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
         if ti.static(fill):
             base = ct.start[i]
         m = 0
+        offset = system_cells(g, p, i)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
                 for cz in range(lo[2], hi[2] + 1):
                     c = ti.Vector([cx, cy, cz])
-                    ci = cell_index(g, c)
+                    ci = cell_index(g, c) + offset
                     b = bucket_of(g, ci)
                     for s in range(g.cell_start[b], g.cell_start[b] + g.cell_count[b]):
                         j = g.items[s]
@@ -190,7 +208,7 @@ def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
                 ct.j[base + b + 1] = key
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
-            if valid == 1 and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
+            if valid == 1 and touches(wl, p, k, i) and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
                 if ti.static(fill):
                     ct.j[base + m] = p.count[None] + k
                 m += 1

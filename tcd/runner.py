@@ -311,7 +311,8 @@ def restore_simulation(scn, arrays: dict, meta: dict):
                      walls=[Wall.from_dict(w) for w in meta["walls"]], density=scn.material.density,
                      friction=scn.material.friction, settings=scn.solver.to_settings(),
                      bond_law=BondLaw(**meta.get("bond_law", {})) if meta.get("bond_law") else scn.bond.to_law(),
-                     domain=tuple(np.asarray(d) for d in meta["domain"]), time=meta["time"])
+                     domain=tuple(np.asarray(d) for d in meta["domain"]), time=meta["time"],
+                     system=arrays.get("particles/system"))
     sim.load_state_dict(arrays)
     sim.step_index = int(meta.get("step", 0))
     return sim

@@ -20,7 +20,7 @@ import numpy as np
 import taichi as ti
 
 from . import backend, contacts as ck, solver as sk
-from .state import (MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
+from .state import (MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
                     WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
@@ -125,13 +125,16 @@ class Simulation:
     corners (m) of the broad-phase grid (particles outside are clamped to its border cells);
     cell_size (m) of the grid (default: the smallest diameter plus the alert distance, times 2).
     `fixed` (N,) bools make particles kinematic (infinite mass, velocity kept).
+    `system` (N,) ints 0..S-1, non-decreasing: S independent systems batched in one simulation
+    (see `Simulation.batch`); particles of two systems never interact, and a wall tagged with
+    a system (`Wall.system`) only touches that system's particles.
     """
 
     def __init__(self, radius, position, *, walls: Sequence[Wall] = (), density: float = 2600.0,
                  layer=None, velocity=None, fixed=None, friction: float = 0.7,
                  settings: SolverSettings = SolverSettings(), bond_law: BondLaw = BondLaw(),
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
-                 time: float = 0.0):
+                 time: float = 0.0, system=None):
         backend._require()
         radius = np.asarray(radius, dtype=float).reshape(-1)
         position = np.asarray(position, dtype=float).reshape(-1, 3)
@@ -146,6 +149,15 @@ class Simulation:
             raise ValueError("particle positions must be finite")
         if not density > 0:
             raise ValueError(f"density must be positive, got {density}")
+        system = np.zeros(n, np.int32) if system is None else np.asarray(system).reshape(-1)
+        if system.shape != (n,) or not np.issubdtype(system.dtype, np.integer):
+            raise ValueError(f"system must be {n} integers, got shape {system.shape}, dtype {system.dtype}")
+        if system[0] != 0 or np.any(np.diff(system) < 0) or np.any(np.diff(system) > 1):
+            raise ValueError("system ids must start at 0 and never decrease or skip a value "
+                             "(each system's particles contiguous)")
+        self.systems = int(system[-1]) + 1
+        if self.systems > MAX_SYSTEMS:
+            raise ValueError(f"at most {MAX_SYSTEMS} systems in one simulation, got {self.systems}")
         if friction < 0:
             raise ValueError(f"friction must be >= 0, got {friction}")
         self.n = n
@@ -179,6 +191,10 @@ class Simulation:
         put(p.w, np.zeros((n, 3)))
         put(p.f_ext, np.zeros((n, 3)))
         put(p.layer, np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
+        put(p.system, system.astype(np.int32))
+        self.system_start = np.searchsorted(system, np.arange(self.systems + 1)).astype(np.int32)
+        put(p.sys_start, self.system_start)
+        p.systems[None] = self.systems
 
         self.wall_fields = acquire(WallFields, MAX_WALLS)
         self.walls: list[Wall] = []
@@ -208,6 +224,9 @@ class Simulation:
         if ncells > 64_000_000:
             raise ValueError(f"broad-phase grid of {dims.tolist()} cells is too large: enlarge "
                              f"cell_size or shrink the domain")
+        if ncells * self.systems >= 2**31:
+            raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
+                             "indices: enlarge cell_size or batch fewer systems")
         # about 8 buckets per particle, never more than the cells (a power of two: c mod 2^k)
         buckets = 64
         while buckets < min(8 * self.n, ncells):
@@ -250,6 +269,11 @@ class Simulation:
         put(wf.lo, np.array([w.extent[0] for w in walls], float))
         put(wf.hi, np.array([w.extent[1] for w in walls], float))
         put(wf.friction, np.array([w.friction for w in walls], float))
+        for w in walls:
+            if w.system >= self.systems:
+                raise ValueError(f"wall {w.name!r} is tagged with system {w.system}, but the "
+                                 f"simulation has {self.systems} system(s)")
+        put(wf.system, np.array([w.system for w in walls], np.int32))
         wf.count[None] = len(walls)
         self._moving = any(w.motion != "fixed" for w in walls)
         self._move_walls(t, force=True)
@@ -344,6 +368,9 @@ class Simulation:
                     break
         self.stats.sweeps[None] = sweeps
         self.stats.residual[None] = residual
+        # one convergence test over all systems: each system reports the common figures
+        put(self.stats.sys_sweeps, np.full(self.systems, sweeps, np.int32))
+        put(self.stats.sys_residual, np.full(self.systems, residual))
         return ncol
 
     def _build_contacts(self) -> None:
@@ -471,6 +498,8 @@ class Simulation:
         n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
         d = {"particles/" + k: get(getattr(p, k), n)
              for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
+        if self.systems > 1:
+            d["particles/system"] = get(p.system, n)
         d.update({
             "contacts/i": get(ct.i, m), "contacts/j": get(ct.j, m),
             "contacts/impulse": get(ct.impulse, m), "contacts/gap": get(ct.gap, m),
@@ -494,6 +523,10 @@ class Simulation:
         n = len(d["particles/radius"])
         if n != self.n:
             raise ValueError(f"state has {n} particles, simulation has {self.n}")
+        system = np.asarray(d.get("particles/system", np.zeros(n, np.int32)))
+        if not np.array_equal(system, get(p.system, n)):
+            raise ValueError("state's particle systems differ from the simulation's "
+                             "(build the simulation with system=...)")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
         m = len(d["contacts/i"])
@@ -516,6 +549,122 @@ class Simulation:
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
         if len(force) == len(self.walls):
             put(self.wall_fields.force, force)
+
+    # ---------------------------------------------------------------- batched systems
+    @classmethod
+    def batch(cls, sims: Sequence["Simulation"]) -> "Simulation":
+        """One simulation holding the independent simulations `sims` side by side in the same
+        fields: sims[s] becomes system s (its particles, contact history, bonds and walls, the
+        walls tagged with s), all in their own coordinates (systems may overlap in space: they
+        never interact). One step then advances every system; on the CPU the serial
+        Gauss-Seidel runs one system per core, each to its own convergence.
+
+        The systems must share the clock, solver settings, bond law and material. The alert
+        distance and the projection slop are those of the smallest grain of all systems; a
+        larger alert only adds pairs that carry no impulse, so each system steps as it would
+        alone (bit for bit when the smallest radii agree, which tests/test_batch.py checks).
+        `split` gives the systems back."""
+        sims = list(sims)
+        if not sims:
+            raise ValueError("batch needs at least one simulation")
+        ref = sims[0]
+        for k, o in enumerate(sims):
+            if o.systems != 1:
+                raise ValueError(f"simulation {k} is already a batch of {o.systems} systems")
+            for attr in ("time", "settings", "bond_law", "friction", "density"):
+                if getattr(o, attr) != getattr(ref, attr):
+                    raise ValueError(f"simulation {k} differs from simulation 0 in {attr}: "
+                                     f"{getattr(o, attr)!r} != {getattr(ref, attr)!r}")
+        states = [o.state_dict() for o in sims]
+        n_tot = sum(o.n for o in sims)
+        wall_list, parts = [], {}
+        contacts = {"i": [], "j": [], "impulse": [], "gap": [], "start": []}
+        bonds: dict = {}
+        p_off = w_off = c_off = 0
+        for k, (o, d) in enumerate(zip(sims, states)):
+            for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
+                parts.setdefault(key, []).append(d["particles/" + key])
+            parts.setdefault("system", []).append(np.full(o.n, k, np.int32))
+            j = d["contacts/j"]
+            contacts["i"].append(d["contacts/i"] + p_off)
+            contacts["j"].append(np.where(j < o.n, j + p_off, n_tot + w_off + (j - o.n)).astype(np.int32))
+            contacts["impulse"].append(d["contacts/impulse"])
+            contacts["gap"].append(d["contacts/gap"])
+            contacts["start"].append(d["contacts/start"][:-1] + c_off)
+            for key in cls._BOND_DEFAULTS:
+                v = d["bonds/" + key]
+                bonds.setdefault(key, []).append(v + p_off if key in ("i", "j") else v)
+            wall_list += [dataclasses.replace(w, system=k) for w in o.walls]
+            p_off += o.n
+            w_off += len(o.walls)
+            c_off += len(d["contacts/i"])
+        contacts["start"].append(np.array([c_off], np.int32))
+        merged = {"particles/" + k: np.concatenate(v) for k, v in parts.items()}
+        merged.update({"contacts/" + k: np.concatenate(v) for k, v in contacts.items()})
+        merged.update({"bonds/" + k: np.concatenate(v) for k, v in bonds.items()})
+        merged["walls/force"] = np.concatenate([d["walls/force"] for d in states]).reshape(-1, 3)
+        lo = np.min([o.domain[0] for o in sims], axis=0)
+        hi = np.max([o.domain[1] for o in sims], axis=0)
+        r_min = min(o.r_min for o in sims)
+        batch = cls(merged["particles/radius"], merged["particles/x"], walls=wall_list,
+                    density=ref.density, layer=merged["particles/layer"], friction=ref.friction,
+                    settings=ref.settings, bond_law=ref.bond_law, domain=(lo, hi),
+                    cell_size=min(o.cell_size for o in sims), time=ref.time,
+                    system=merged["particles/system"],
+                    contact_capacity=max(64, int(1.25 * c_off) + 64))
+        assert batch.r_min == r_min
+        batch.load_state_dict(merged)
+        batch.step_index = ref.step_index
+        return batch
+
+    def system_slice(self, s: int) -> slice:
+        """The particles of system s."""
+        if not 0 <= s < self.systems:
+            raise ValueError(f"no system {s} (the simulation has {self.systems})")
+        return slice(int(self.system_start[s]), int(self.system_start[s + 1]))
+
+    def system_walls(self, s: int) -> list[int]:
+        """Indices of the walls that act on system s (its own and the untagged ones)."""
+        self.system_slice(s)
+        return [k for k, w in enumerate(self.walls) if w.system in (-1, s)]
+
+    def system_stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sweeps and residual of the last step, per system."""
+        return get(self.stats.sys_sweeps, self.systems), get(self.stats.sys_residual, self.systems).astype(float)
+
+    def split(self) -> list[dict]:
+        """The state of each system as `state_dict` would give it for that system alone
+        (particle and wall indices of its own), with its walls (untagged) under "walls"."""
+        d = self.state_dict()
+        out = []
+        ci, cj = d["contacts/i"], d["contacts/j"]
+        bi, bj = d["bonds/i"], d["bonds/j"]
+        for s in range(self.systems):
+            sl = self.system_slice(s)
+            n_s = sl.stop - sl.start
+            wk = [k for k, w in enumerate(self.walls) if w.system == s]
+            if any(w.system == -1 for w in self.walls):
+                raise ValueError("split needs every wall tagged with its system")
+            c0, c1 = int(d["contacts/start"][sl.start]), int(d["contacts/start"][sl.stop])
+            j = cj[c0:c1]
+            wall_pos = {self.n + k: m for m, k in enumerate(wk)}
+            e = {"particles/" + k: d["particles/" + k][sl]
+                 for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
+            e["contacts/i"] = ci[c0:c1] - sl.start
+            e["contacts/j"] = np.array([jj - sl.start if jj < self.n else n_s + wall_pos[jj] for jj in j],
+                                       np.int32).reshape(-1)
+            e["contacts/impulse"] = d["contacts/impulse"][c0:c1]
+            e["contacts/gap"] = d["contacts/gap"][c0:c1]
+            e["contacts/start"] = d["contacts/start"][sl.start:sl.stop + 1] - c0
+            keep = (bi >= sl.start) & (bi < sl.stop)
+            for key in self._BOND_DEFAULTS:
+                v = d["bonds/" + key][keep]
+                e["bonds/" + key] = v - sl.start if key in ("i", "j") else v
+            for key in ("kind", "point", "direction", "radius", "extent", "force"):
+                e["walls/" + key] = d["walls/" + key][wk]
+            e["walls"] = [dataclasses.replace(self.walls[k], system=-1) for k in wk]
+            out.append(e)
+        return out
 
     def memory_bytes(self) -> int:
         parts = [self.particles, self.contacts, self.bonds, self.grid, self.wall_fields]

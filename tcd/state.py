@@ -15,7 +15,8 @@ import taichi as ti
 
 from . import backend
 
-MAX_WALLS = 16
+MAX_WALLS = 64
+MAX_SYSTEMS = 64            # independent systems (samples) batched in one simulation
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
 
@@ -123,17 +124,23 @@ class Particles:
         self.x = _vec(c)
         self.v_old, self.w_old, self.f_ext = _vec(c), _vec(c), _vec(c)
         self.layer = _int(c)
+        # batched systems: particle i belongs to system[i]; system s holds the contiguous
+        # particles sys_start[s] .. sys_start[s + 1] - 1 (one system: all of them)
+        self.system = _int(c)
+        self.sys_start = _int(MAX_SYSTEMS + 1)
+        self.systems = _scalar()
         self.count = _scalar()
 
     def reset(self):
         self.count[None] = 0
+        self.systems[None] = 1
 
 
 @ti.data_oriented
 class WallFields:
     """Device copy of the walls: kind (0 plane, 1 cylinder), point, direction, radius, axial
     range lo/hi, friction, velocity over the current step (m/s) and force from the particles
-    over the last step (N)."""
+    over the last step (N); system: the batched system whose particles it touches (-1: all)."""
     pool_args = ()
 
     def __init__(self, capacity: int = MAX_WALLS):
@@ -141,6 +148,7 @@ class WallFields:
         self.kind = _int(m)
         self.point, self.direction, self.velocity, self.force = _vec(m), _vec(m), _vec(m), _vec(m)
         self.radius, self.lo, self.hi, self.friction = _real(m), _real(m), _real(m), _real(m)
+        self.system = _int(m)
         self.count = _scalar()
 
     def reset(self):
@@ -291,13 +299,16 @@ class Partition:
 
 @ti.data_oriented
 class SolverStats:
-    """Per-step solver record: sweeps used, final residual, colours used."""
+    """Per-step solver record: sweeps used, final residual, colours used; per batched system
+    (sys_sweeps, sys_residual) and over all of them (sweeps: the most, residual: the largest)."""
     pool_args = ()
 
     def __init__(self, capacity: int = 1):
         self.capacity = capacity
         self.sweeps = _scalar()
         self.residual = _scalar(backend.real())
+        self.sys_sweeps = _int(MAX_SYSTEMS)
+        self.sys_residual = _real(MAX_SYSTEMS)
         self.colours = _scalar()
         self.colour_overflow = _scalar()
 

@@ -37,7 +37,8 @@ class Wall:
     velocity * s + amplitude * sin(2 pi frequency s), s = t - start), amplitude in m,
     frequency in Hz. start (s) is
     when the motion begins (the wall rests at `point` before). friction: Coulomb coefficient
-    against particles.
+    against particles. system: in a batch of independent systems (Simulation.batch), the one
+    whose particles the wall touches; -1 (default): every particle.
     """
     kind: str
     point: Vec
@@ -51,6 +52,7 @@ class Wall:
     frequency: float = 0.0
     start: float = 0.0
     name: str = ""
+    system: int = -1
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -70,6 +72,9 @@ class Wall:
                 raise ValueError(f"wall {self.name!r}: cylinder extent must have hi > lo")
         if self.friction < 0:
             raise ValueError(f"wall {self.name!r}: friction must be >= 0")
+        if not isinstance(self.system, (int, np.integer)) or self.system < -1:
+            raise ValueError(f"wall {self.name!r}: system must be an integer >= -1, got {self.system!r}")
+        object.__setattr__(self, "system", int(self.system))
         if self.motion == "sine" and not self.frequency > 0:
             raise ValueError(f"wall {self.name!r}: sinusoidal motion needs frequency > 0")
 

@@ -1,0 +1,140 @@
+"""Batched systems (issue 8): several independent samples side by side in the same fields.
+
+A batch must step each system exactly as it would step alone: no contact across systems, walls
+acting only on their own system, each system's Gauss-Seidel converging on its own. The strongest
+check is bitwise: two different pours (and then the same two bonded) stepped one by one and as a
+batch give the same numbers (serial schedule, the systems' smallest radii equal).
+"""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tcd import packing, walls
+from tcd.simulation import Simulation, SolverSettings
+
+R = 0.02
+
+
+def pour(seed: int, n: int = 120, radii=None, settings=SolverSettings(max_sweeps=300)):
+    rng = np.random.default_rng(seed)
+    r = packing.course_radii("surface", n, rng) * 0.5 if radii is None else rng.permutation(radii)
+    x = packing.lattice_column(r, 2 * R, 0.0, rng, max_height=0.2)
+    top = float(x[:, 2].max() + r.max())
+    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R, name="bottom"),
+          walls.cylinder((0, 0, 0), (0, 0, 1), R, (0.0, top + 0.01), friction=0.2, name="mould")]
+    return Simulation(r, x, walls=wl, friction=0.7, settings=settings,
+                      domain=((-R, -R, 0.0), (R, R, top)))
+
+
+@pytest.fixture(scope="module")
+def pair(backend):
+    """Two different pours with the same radii (so the same smallest grain)."""
+    a = pour(1)
+    b = pour(2, radii=a.radii())
+    return a, b
+
+
+def test_batch_steps_each_system_as_alone(pair, precision):
+    a, b = pair
+    batch = Simulation.batch([a, b])
+    assert batch.systems == 2 and batch.n == a.n + b.n
+    sweeps = []
+    for _ in range(200):
+        ra, rb = a.step(), b.step()
+        batch.step()
+        sweeps.append((ra.sweeps, rb.sweeps, *batch.system_stats()[0]))
+    sweeps = np.array(sweeps)
+    assert sweeps[:, 0].max() > 5, "the pours must reach the floor within the test"
+    np.testing.assert_array_equal(sweeps[:, 0], sweeps[:, 2])
+    np.testing.assert_array_equal(sweeps[:, 1], sweeps[:, 3])
+    x = batch.positions()
+    np.testing.assert_array_equal(x[batch.system_slice(0)], a.positions())
+    np.testing.assert_array_equal(x[batch.system_slice(1)], b.positions())
+    # each system's walls felt only its own particles
+    for s, o in enumerate((a, b)):
+        for m, k in enumerate(batch.system_walls(s)):
+            np.testing.assert_array_equal(batch.wall_force(k), o.wall_force(m))
+
+    # now bonded: bond both, batch again, step both ways with a moving wall
+    for o in (a, b):
+        assert o.create_bonds(2e-4) > 20
+        o.set_walls([o.walls[0], dataclasses.replace(o.walls[1], motion="constant",
+                                                      velocity=(0.02, 0.0, 0.0), start=o.time)])
+    batch = Simulation.batch([a, b])
+    for _ in range(60):
+        ra, rb = a.step(), b.step()
+        batch.step()
+        np.testing.assert_array_equal(batch.system_stats()[0], [ra.sweeps, rb.sweeps])
+    v = batch.velocities()
+    np.testing.assert_array_equal(v[batch.system_slice(0)], a.velocities())
+    np.testing.assert_array_equal(v[batch.system_slice(1)], b.velocities())
+    assert batch.bonds_intact_count() == a.bonds_intact_count() + b.bonds_intact_count()
+
+
+def test_split_gives_back_each_system(pair):
+    a, b = pair
+    batch = Simulation.batch([a, b])
+    batch.step()
+    a.step()
+    b.step()
+    for o, part in zip((a, b), batch.split()):
+        mine = o.state_dict()
+        assert [dataclasses.replace(w) for w in part.pop("walls")] == o.walls
+        assert set(part) == set(mine)
+        for key, value in mine.items():
+            np.testing.assert_array_equal(part[key], value, err_msg=key)
+
+
+def test_superimposed_systems_never_touch(backend):
+    """Two copies of one pour in the same place: every contact stays inside a system, each
+    system's contact set is that of the pour alone (the brute-force pairs within the alert
+    distance), and a wall tagged with one system never touches the other."""
+    a = pour(3)
+    b = pour(3)
+    batch = Simulation.batch([a, b])
+    for _ in range(150):
+        batch.step()
+        a.step()
+    c = batch.contact_arrays()
+    system = np.repeat([0, 1], a.n)
+    n = batch.n
+    pp = c["j"] < n
+    assert np.all(system[c["i"][pp]] == system[c["j"][pp]])
+    wall_system = np.array([w.system for w in batch.walls])
+    assert np.all(wall_system[c["j"][~pp] - n] == system[c["i"][~pp]])
+    mine = a.contact_arrays()
+    for s in (0, 1):
+        sel = system[c["i"]] == s
+        off = s * a.n
+        j = np.where(c["j"][sel] < n, c["j"][sel] - off, c["j"][sel] - n - 2 * s + a.n)
+        np.testing.assert_array_equal(c["i"][sel] - off, mine["i"])
+        np.testing.assert_array_equal(j, mine["j"])
+    # brute force: every particle pair of system 0 with a gap below the alert distance is a contact
+    x, r = a.positions(), a.radii()
+    d = np.linalg.norm(x[:, None] - x[None], axis=2) - r[:, None] - r[None]
+    i, j = np.nonzero(np.triu(d < a.alert, 1))
+    found = set(zip(mine["i"].tolist(), mine["j"].tolist()))
+    assert set(zip(i.tolist(), j.tolist())) <= found
+
+
+def test_batch_rejects_mismatched_systems(pair):
+    a, b = pair
+    other = pour(4, n=20, settings=SolverSettings(max_sweeps=300, time_step=1e-4))
+    with pytest.raises(ValueError, match="differs from simulation 0 in settings"):
+        Simulation.batch([pour(5, n=20), other])
+    with pytest.raises(ValueError, match="differs from simulation 0 in time"):
+        Simulation.batch([pour(5, n=20), a])
+    with pytest.raises(ValueError, match="at least one"):
+        Simulation.batch([])
+    batch = Simulation.batch([a, b])
+    with pytest.raises(ValueError, match="already a batch"):
+        Simulation.batch([batch, a])
+    with pytest.raises(ValueError, match="system 2"):
+        batch.set_walls(batch.walls + [walls.plane((0, 0, 0.1), (0, 0, -1), system=2)])
+    with pytest.raises(ValueError, match="no system 5"):
+        batch.system_slice(5)
+    with pytest.raises(ValueError, match="never decrease"):
+        Simulation([0.001] * 3, [[0, 0, 0.01], [0, 0, 0.02], [0, 0, 0.03]], system=[0, 1, 0])
+    with pytest.raises(ValueError, match="system must be an integer"):
+        walls.plane((0, 0, 0), (0, 0, 1), system=-2)
