@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+import time as _time
 
 import numpy as np
 
@@ -134,41 +135,83 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 
 
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
-          tolerance: float = 1e-4, seed: int = 1, sample: str | None = None) -> dict:
+          tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
     (`prepared.h5` of a `tcd run`, 150 mm mould) instead of the generated one; `particles`
-    is then its own count."""
+    is then its own count; a `{seed}` in it is replaced by the seed.
+
+    `samples` > 1: that many samples (seeds seed, seed + 1, ...) sheared at once as one batched
+    simulation (Simulation.batch: the same fields, one step for all); the figure is then the
+    wall time over (all particles x steps), and `per_sample` lists each system's sweeps and
+    residual. Each sample starts its shear at the latest of their preparation clocks (a batch
+    has one clock)."""
     import pathlib
     from .config import parse_scenario
     from .protocols import Shear
     from .runner import load_prepared
+    from .simulation import Simulation
     _init(arch, precision)
-    path = pathlib.Path(sample) if sample else bench_sample(particles, seed, tolerance)
-    scn = parse_scenario(f'name = "bench_shear"\nseeds = [{int(seed)}]\n'
-                         f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
-                         f'[solver]\ntolerance = {float(tolerance)!r}\n'
-                         f'[[stage]]\nkind = "shear"\nsample = {str(path.resolve())!r}\n', "<bench shear>")
-    stage = scn.stages[0]
-    sim = load_prepared(scn, stage.sample)
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    seeds = [seed + k for k in range(samples)]
+    paths = [pathlib.Path(sample.format(seed=s)) if sample else bench_sample(particles, s, tolerance)
+             for s in seeds]
+    for path in paths:
+        if not path.is_file():
+            raise FileNotFoundError(f"prepared sample {path}: no such file")
+    sims, phases = [], []
+    for s, path in zip(seeds, paths):
+        scn = parse_scenario(f'name = "bench_shear"\nseeds = [{int(s)}]\n'
+                             f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
+                             f'[solver]\ntolerance = {float(tolerance)!r}\n'
+                             f'[[stage]]\nkind = "shear"\nsample = {str(path.resolve())!r}\n',
+                             "<bench shear>")
+        sims.append(load_prepared(scn, scn.stages[0].sample))
+    t0 = max(o.time for o in sims)
+    for s, o in zip(seeds, sims):
+        o.time = t0
+        phase, o = Shear(scn.stages[0], scn, s).plan(0, o, t0)
+        o.set_walls(phase.walls)
+        phases.append(phase)
+    sim = sims[0] if samples == 1 else Simulation.batch(sims)
+    if samples > 1:
+        for o in sims:
+            o.close()
     particles = sim.n
-    phase, sim = Shear(stage, scn, seed).plan(0, sim, sim.time)
-    sim.set_walls(phase.walls)
-    bonds = int(phase.info["bonds_created"])
+    bonds = sum(int(ph.info["bonds_created"]) for ph in phases)
     steps = max(2, int(round(time / sim.settings.time_step)))
-    compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+    t_start = _time.perf_counter()
+    sim.step()
+    compile_s = _time.perf_counter() - t_start
+    sweeps, residuals = [], []
+    t_start = _time.perf_counter()
+    for _ in range(steps - 1):
+        sim.step()
+        sw, res = sim.system_stats()
+        sweeps.append(sw)
+        residuals.append(res)
+    loop_s = _time.perf_counter() - t_start
+    sweeps, residuals = np.asarray(sweeps), np.asarray(residuals)
     out = {
         "benchmark": "shear", "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
-        "particles": particles, "steps": steps, "simulated_time_s": steps * sim.settings.time_step,
+        "particles": particles, "samples": samples, "steps": steps,
+        "simulated_time_s": steps * sim.settings.time_step,
         "bonds": bonds, "bonds_intact": sim.bonds_intact_count(),
-        "mean_sweeps": float(sweeps.mean()), "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
-        "final_residual": float(residuals[-1]), "tolerance": tolerance, "arch": arch,
+        "mean_sweeps": float(sweeps.mean()),
+        "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
+        "final_residual": float(residuals[-1].max()), "tolerance": tolerance, "arch": arch,
         "precision": precision, "schedule": sim.schedule, "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
         "contacts": int(sim.contact_arrays()["i"].size),
         "max_overlap_ratio": bed_metrics(sim)["max_overlap_ratio"],
     }
+    if samples > 1:
+        out["per_sample"] = [{"seed": s, "particles": int(sim.system_start[k + 1] - sim.system_start[k]),
+                              "mean_sweeps": float(sweeps[:, k].mean()),
+                              "final_residual": float(residuals[-1, k])}
+                             for k, s in enumerate(seeds)]
     sim.close()
     return out
 

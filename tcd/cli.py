@@ -108,6 +108,8 @@ def _resume_command(args) -> str:
         words += ["--seeds", ",".join(map(str, args.seeds))]
     if getattr(args, "jobs", 1) > 1:
         words += ["--jobs", str(args.jobs)]
+    if getattr(args, "batch", False):
+        words += ["--batch"]
     return shlex.join(words + ["--resume"])
 
 
@@ -132,8 +134,17 @@ def cmd_run(args) -> int:
                       else "it has no checkpoint to resume from: remove it or choose another "
                            "--out directory")
             raise UsageError(f"{out_dir} already holds results ({shown}{more}); {advice}")
-    from .runner import run_scenario
-    summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True, jobs=args.jobs)
+    if args.batch:
+        from .runner import batch_problem, run_batch
+        if args.jobs > 1:
+            raise UsageError("--batch runs every sample in one simulation: it takes no --jobs")
+        problem = batch_problem(scenario)
+        if problem:
+            raise UsageError(problem)
+        summary = run_batch(scenario, out_dir, resume=args.resume, progress=True)
+    else:
+        from .runner import run_scenario
+        summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True, jobs=args.jobs)
     print(f"tcd: {scenario.name}: results in {out_dir}")
     if summary:
         print(format_table(summary))
@@ -218,9 +229,17 @@ def cmd_bench(args) -> int:
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed)
+        if getattr(args, "samples", 1) > 1:
+            options["samples"] = args.samples
         if getattr(args, "sample", None):
-            if not Path(args.sample).is_file():
-                raise UsageError(f"--sample {args.sample}: no such file")
+            for k in range(getattr(args, "samples", 1)):
+                try:
+                    path = Path(args.sample.format(seed=args.seed + k))
+                except (KeyError, IndexError, ValueError):
+                    raise UsageError(f"--sample {args.sample}: the only placeholder allowed is "
+                                     "{seed}") from None
+                if not path.is_file():
+                    raise UsageError(f"--sample {args.sample}: no such file {path}")
             options["sample"] = args.sample
         if args.time is not None:       # else the benchmark's own duration
             options["time"] = args.time
@@ -294,6 +313,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
                    help="samples run at once, one process each (default 1; the CPU solver "
                         "uses one core per sample)")
+    p.add_argument("--batch", action="store_true",
+                   help="shear every sample at once in one batched simulation (a scenario whose "
+                        "only stage is a shear of prepared samples; one sample per core on "
+                        "the CPU, all at once on a GPU)")
     p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
                    help="run only these of the scenario's seeds (e.g. to split a study across "
                         "invocations; the summary then holds these samples)")
@@ -350,7 +373,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run N times and report the median run (all N figures listed)")
         if name == "shear":
             b.add_argument("--sample", default=None, metavar="FILE.h5",
-                           help="a prepared sample (prepared.h5 of a run) instead of a generated one")
+                           help="a prepared sample (prepared.h5 of a run) instead of a generated "
+                                "one; {seed} in the name is replaced by the seed")
+            b.add_argument("--samples", type=_positive_int, default=1, metavar="K",
+                           help="shear K samples (seeds SEED..SEED+K-1) as one batched simulation")
         b.set_defaults(handler=cmd_bench)
     b = bench_sub.add_parser("scaling", help="cost per particle step against particle count")
     b.add_argument("--sizes", default="1000,3000,10000,30000,100000", metavar="N,N,...")

@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from . import __version__, backend, io
+from .state import MAX_SYSTEMS
 from .protocols import PAPER_EXPERIMENT, PAPER_SIMULATION, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
 
 FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
@@ -120,6 +121,175 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
     summary["jobs"] = jobs
     io.write_json(out / "summary.json", summary)
+    return summary
+
+
+def batch_problem(scenario) -> str | None:
+    """Why `scenario` cannot run as one batch (None when it can)."""
+    stages = scenario.stages
+    if len(stages) != 1 or stages[0].kind != "shear" or not getattr(stages[0], "sample", ""):
+        return (f"{scenario.name}: --batch runs a scenario whose only stage is a shear of "
+                "prepared samples (`sample = \"...\"`); this one has stages: "
+                + ", ".join(st.kind for st in stages))
+    if len(scenario.seeds) > MAX_SYSTEMS:
+        return f"{scenario.name}: at most {MAX_SYSTEMS} samples in one batch, got {len(scenario.seeds)}"
+    return None
+
+
+def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True) -> dict:
+    """Shear every sample of `scenario` at once, as one batched simulation (Simulation.batch:
+    the samples side by side in the same fields, one step for all; on the CPU the Gauss-Seidel
+    runs one sample per core, on a GPU all in one set of launches).
+
+    For scenarios whose only stage is a shear of prepared samples (`sample = ".../{seed}..."`):
+    preparation phases end at different times per sample, so they are not batched. The outputs
+    are those of `run_scenario` (sample_<seed>/ series, states, summary.json; summary.json),
+    each sample's numbers computed from its own system; the checkpoint is one file for the
+    batch (batch_checkpoint.h5). A batch has one clock: every sample starts its shear at the
+    latest of the prepared samples' times (an unbatched run starts at the sample's own time,
+    so the two agree to rounding, not bit for bit)."""
+    from .simulation import Simulation, SystemView
+    problem = batch_problem(scenario)
+    if problem:
+        raise ValueError(problem)
+    stage = scenario.stages[0]
+    seeds = list(scenario.seeds)
+    out = pathlib.Path(out_dir)
+    ck_path = out / "batch_checkpoint.h5"
+    if resume and not ck_path.exists():
+        raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
+    out.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(out / "scenario.toml") as tmp:
+        pathlib.Path(tmp).write_text(scenario.text)
+    backend.init(scenario.backend.arch, scenario.backend.precision)
+    t_start = time.perf_counter()
+    dirs = {seed: out / f"sample_{seed}" for seed in seeds}
+    protos = {seed: PROTOCOLS["shear"](stage, scenario, seed) for seed in seeds}
+    h = scenario.solver.time_step
+    if resume:
+        arrays, meta = io.load_checkpoint(ck_path)
+        if meta.get("seeds") != seeds:
+            raise ValueError(f"{ck_path}: the checkpoint holds seeds {meta.get('seeds')}, "
+                             f"the scenario {seeds}")
+        batch = restore_simulation(scenario, arrays, meta)
+        phases = [Phase.from_json(ph) for ph in meta["phases"]]
+        step_in_phase, next_snapshot = meta["step_in_phase"], meta["next_snapshot"]
+        results = meta["results"]
+        series = [{k.split("/", 2)[2]: list(v) for k, v in arrays.items()
+                   if k.startswith(f"series/{seed}/")} for seed in seeds]
+        wall_before = meta["wall_time_s"]
+    else:
+        for d in dirs.values():
+            d.mkdir(parents=True, exist_ok=True)
+            for stale in ("states.h5", "checkpoint.h5", "summary.json"):
+                (d / stale).unlink(missing_ok=True)
+        sims = [load_prepared(scenario, stage.sample.format(seed=seed)) for seed in seeds]
+        t0 = max(o.time for o in sims)
+        phases = []
+        for seed, o in zip(seeds, sims):
+            o.time = t0
+            phase, o = protos[seed].plan(0, o, t0)
+            o.set_walls(phase.walls)
+            phases.append(phase)
+        batch = Simulation.batch(sims)
+        for o in sims:
+            o.close()
+        step_in_phase, next_snapshot, wall_before = 0, 0.0, 0.0
+        series = [{} for _ in seeds]
+        results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
+                   for seed in seeds]
+        views = [SystemView(batch, k) for k in range(len(seeds))]
+        for seed, view, res in zip(seeds, views, results):
+            k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
+                                step=batch.step_index, stage="shear", scenario_text=scenario.text,
+                                tcd_version=__version__)
+            res["stage_first_frame"] = {"0": k}
+    views = [SystemView(batch, k) for k in range(len(seeds))]
+    t_loop = time.perf_counter() - wall_before
+    last_ck = time.perf_counter()
+
+    def checkpoint():
+        arrays = dict(batch.state_dict())
+        for seed, ser in zip(seeds, series):
+            arrays.update({f"series/{seed}/{k}": np.asarray(v) for k, v in ser.items()})
+        meta = {"seeds": seeds, "phases": [ph.to_json() for ph in phases],
+                "step_in_phase": step_in_phase, "next_snapshot": next_snapshot,
+                "results": results, "time": batch.time, "step": batch.step_index,
+                "walls": [w.to_dict() for w in batch.walls], "bond_law": batch.bond_law.__dict__,
+                "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
+                "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__}
+        io.save_checkpoint(ck_path, arrays, meta)
+
+    steps = phases[0].steps
+    with DeferredInterrupt() as interrupt:
+        bar = Progress(progress, f"batch of {len(seeds)} shear", steps, h)
+        bar.update(step_in_phase, batch.time)
+        while step_in_phase < steps:
+            protos[seeds[0]].before_step(batch, phases[0])
+            rec = batch.step()
+            step_in_phase += 1
+            if step_in_phase % scenario.output.series_every == 0:
+                for k, (seed, view) in enumerate(zip(seeds, views)):
+                    sweeps, residual = view.solver_stats()
+                    row = {"time": batch.time, "step": batch.step_index, "sweeps": sweeps,
+                           "residual": residual, "contacts": view.contact_count(),
+                           "kinetic_energy": view.kinetic_energy()}
+                    row.update(protos[seed].record(view, phases[k]))
+                    for key, v in row.items():
+                        series[k].setdefault(key, []).append(v)
+            if batch.time >= next_snapshot - 1e-12:
+                for seed, view in zip(seeds, views):
+                    io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
+                                    step=batch.step_index, stage="shear",
+                                    scenario_text=scenario.text, tcd_version=__version__)
+                every = scenario.output.snapshot_every
+                next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
+            if step_in_phase % 100 == 0:
+                bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
+            if interrupt.pending or time.perf_counter() - last_ck >= scenario.output.checkpoint_every_s:
+                checkpoint()
+                last_ck = time.perf_counter()
+                if interrupt.pending:
+                    bar.close()
+                    raise KeyboardInterrupt
+        bar.close()
+        checkpoint()
+    wall = time.perf_counter() - t_loop
+    samples = []
+    units = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
+             "kinetic_energy": "J", "top_plate_shear_force": "N"}
+    for k, (seed, view) in enumerate(zip(seeds, views)):
+        res, arrays = results[k], {key: np.asarray(v) for key, v in series[k].items()}
+        first = res.get("stage_first_frame", {}).get("0")
+        states = dirs[seed] / "states.h5"
+        x_start = io.read_frame(states, first)["particles/x"] if first is not None else None
+        numbers = protos[seed].finish(view, phases[k], arrays, x_start)
+        numbers["wall_time_s"] = wall
+        numbers["steps"] = int(len(arrays.get("time", [])) * scenario.output.series_every)
+        res["stages"]["0:shear"] = numbers
+        res["wall_time_s"]["0:shear"] = wall
+        res["phases"] = [{"stage": "shear", "phase": phases[k].name, "steps": step_in_phase,
+                          "end_time": batch.time, **phases[k].info}]
+        res["last_phase"] = phases[k].to_json()
+        io.write_series(dirs[seed] / "shear_series.h5", arrays,
+                        units={key: u for key, u in units.items() if key in arrays},
+                        attrs={"tau_peak": numbers["tau_peak_MPa"] * 1e6,
+                               "d_peak": numbers["d_peak_mm"] * 1e-3,
+                               "smoothing_window": stage.smoothing_window_mm * 1e-3},
+                        csv_path=dirs[seed] / "shear_series.csv")
+        io.append_frame(states, frame_of(view), time=batch.time, step=batch.step_index,
+                        stage="shear", scenario_text=scenario.text, tcd_version=__version__)
+        flat = {"seed": seed, **res}
+        flat.update({key: numbers[key] for key in ("tau_peak_MPa", "d_peak_mm", "residual_MPa",
+                                                   "bonds_total", "bonds_broken", "bonds_broken_tension",
+                                                   "bonds_broken_shear", "particles")})
+        io.write_json(dirs[seed] / "summary.json", flat)
+        samples.append(flat)
+    summary = summarize(scenario, samples)
+    summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
+    summary["batched"] = True
+    io.write_json(out / "summary.json", summary)
+    batch.close()
     return summary
 
 

@@ -287,12 +287,16 @@ class Simulation:
             np.array([w.step_velocity(t, h) for w in self.walls], float).reshape(-1, 3))
 
     def _drop_wall_history(self):
+        """Wall contacts start the next step from zero impulse: in the history the warm start
+        reads, and in the current list that `state_dict` saves (which must hold the same)."""
         ct = self.contacts
-        m = int(ct.prev_total[None])
-        pj = get(ct.prev_j, m)
-        pr = get(ct.prev_impulse, m)
-        pr[pj >= self.n] = 0.0
-        put(ct.prev_impulse, pr)
+        for j_field, r_field, total in ((ct.prev_j, ct.prev_impulse, ct.prev_total),
+                                        (ct.j, ct.impulse, ct.total)):
+            m = int(total[None])
+            pj = get(j_field, m)
+            pr = get(r_field, m)
+            pr[pj >= self.n] = 0.0
+            put(r_field, pr)
 
     # ---------------------------------------------------------------- the time step
     def step(self, count: int = 1) -> StepRecord:
@@ -442,9 +446,13 @@ class Simulation:
         return b
 
     def _candidate_pairs(self, reach: float) -> np.ndarray:
-        """All particle pairs with gap < reach, sorted (i < j), via the grid kernels."""
+        """All particle pairs with gap < reach, sorted (i < j), via the grid kernels (in a
+        contact buffer of their own: the simulation's contacts and their history stay as they
+        are, so that `state_dict` still gives the state the next step starts from)."""
         saved_alert = self.alert
         saved_bonds = self.bonds
+        saved_contacts = self.contacts
+        self.contacts = acquire(Contacts, saved_contacts.capacity, self.particles.capacity)
         self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.alert = max(reach, 1e-300)
         saved_count = self.wall_fields.count[None]
@@ -457,6 +465,8 @@ class Simulation:
             self.alert = saved_alert
             release(self.bonds)
             self.bonds = saved_bonds
+            release(self.contacts)
+            self.contacts = saved_contacts
             self.wall_fields.count[None] = saved_count
         return pairs.reshape(-1, 2)
 
@@ -632,27 +642,29 @@ class Simulation:
         """Sweeps and residual of the last step, per system."""
         return get(self.stats.sys_sweeps, self.systems), get(self.stats.sys_residual, self.systems).astype(float)
 
-    def split(self) -> list[dict]:
-        """The state of each system as `state_dict` would give it for that system alone
-        (particle and wall indices of its own), with its walls (untagged) under "walls"."""
+    def split(self, systems=None) -> list[dict]:
+        """The state of each system (or of those listed in `systems`) as `state_dict` would
+        give it for that system alone (particle and wall indices of its own), with its walls
+        (untagged) under "walls"."""
         d = self.state_dict()
         out = []
         ci, cj = d["contacts/i"], d["contacts/j"]
-        bi, bj = d["bonds/i"], d["bonds/j"]
-        for s in range(self.systems):
+        bi = d["bonds/i"]
+        if any(w.system == -1 for w in self.walls):
+            raise ValueError("split needs every wall tagged with its system")
+        for s in (range(self.systems) if systems is None else systems):
             sl = self.system_slice(s)
             n_s = sl.stop - sl.start
             wk = [k for k, w in enumerate(self.walls) if w.system == s]
-            if any(w.system == -1 for w in self.walls):
-                raise ValueError("split needs every wall tagged with its system")
             c0, c1 = int(d["contacts/start"][sl.start]), int(d["contacts/start"][sl.stop])
             j = cj[c0:c1]
-            wall_pos = {self.n + k: m for m, k in enumerate(wk)}
+            wall_pos = np.full(max(len(self.walls), 1), -1, np.int64)
+            wall_pos[wk] = np.arange(len(wk))
             e = {"particles/" + k: d["particles/" + k][sl]
                  for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
             e["contacts/i"] = ci[c0:c1] - sl.start
-            e["contacts/j"] = np.array([jj - sl.start if jj < self.n else n_s + wall_pos[jj] for jj in j],
-                                       np.int32).reshape(-1)
+            e["contacts/j"] = np.where(j < self.n, j - sl.start,
+                                       n_s + wall_pos[np.maximum(j - self.n, 0)]).astype(j.dtype)
             e["contacts/impulse"] = d["contacts/impulse"][c0:c1]
             e["contacts/gap"] = d["contacts/gap"][c0:c1]
             e["contacts/start"] = d["contacts/start"][sl.start:sl.stop + 1] - c0
@@ -725,3 +737,81 @@ class Simulation:
         """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
         self.walls[k] = wall
         self._upload_walls(self.time)
+
+
+class SystemView:
+    """System s of a batch seen through the part of the Simulation interface that the protocols
+    and the runner read (clock, walls and their forces, particles, bonds, state): the numbers of
+    that system alone, with its own particle and wall indices. Reads only; the batch steps."""
+
+    def __init__(self, batch: Simulation, s: int):
+        self.batch, self.s = batch, s
+        self.slice = batch.system_slice(s)
+        self.n = self.slice.stop - self.slice.start
+        self.wall_index = [k for k, w in enumerate(batch.walls) if w.system == s]
+        self._split_step = None
+
+    time = property(lambda self: self.batch.time)
+    step_index = property(lambda self: self.batch.step_index)
+    settings = property(lambda self: self.batch.settings)
+    bond_law = property(lambda self: self.batch.bond_law)
+    density = property(lambda self: self.batch.density)
+    domain = property(lambda self: self.batch.domain)
+
+    @property
+    def walls(self) -> list:
+        return [dataclasses.replace(self.batch.walls[k], system=-1) for k in self.wall_index]
+
+    def positions(self):
+        return self.batch.positions()[self.slice]
+
+    def velocities(self):
+        return self.batch.velocities()[self.slice]
+
+    def angular_velocities(self):
+        return self.batch.angular_velocities()[self.slice]
+
+    def radii(self):
+        return self.batch.radii()[self.slice]
+
+    def wall_force(self, k: int) -> np.ndarray:
+        return self.batch.wall_force(self.wall_index[k])
+
+    def _bond_range(self) -> tuple[int, int]:
+        start = self.batch.bonds.start
+        return int(start[self.slice.start]), int(start[self.slice.stop])
+
+    def bonds_state_counts(self) -> tuple:
+        b0, b1 = self._bond_range()
+        s = get(self.batch.bonds.state, b1)[b0:]
+        return (int(np.count_nonzero(s == sk.INTACT)), int(np.count_nonzero(s == sk.BROKEN_TENSION)),
+                int(np.count_nonzero(s == sk.BROKEN_SHEAR)))
+
+    def bonds_intact_count(self) -> int:
+        return self.bonds_state_counts()[0]
+
+    def contact_count(self) -> int:
+        start = self.batch.contacts.start
+        return int(start[self.slice.stop]) - int(start[self.slice.start])
+
+    def solver_stats(self) -> tuple[int, float]:
+        sweeps, residual = self.batch.system_stats()
+        return int(sweeps[self.s]), float(residual[self.s])
+
+    def kinetic_energy(self) -> float:
+        from .observables import kinetic_energy
+        return kinetic_energy(self.velocities(), self.angular_velocities(), self.radii(), self.density)
+
+    def state_dict(self) -> dict:
+        """The system's state as `Simulation.state_dict` of it alone (split of the batch, kept
+        until the batch steps again)."""
+        if self._split_step != self.batch.step_index or self._split is None:
+            self._split = None
+            self._split_step = self.batch.step_index
+        if self._split is None:
+            d = dict(self.batch.split([self.s])[0])
+            d.pop("walls")
+            self._split = d
+        return self._split
+
+    _split = None

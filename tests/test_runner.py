@@ -217,3 +217,68 @@ def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(m
     two = io.read_series(tmp_path / "sample_3" / "shear_series.h5")
     for key in ("displacement", "shear_stress", "bonds_intact"):
         assert np.array_equal(one[key], two[key]), key
+
+
+def _shear_only(prepared, seeds="[3]"):
+    head = MICRO[:MICRO.index('[[stage]]\nkind = "prepare"')].replace("seeds = [3]", f"seeds = {seeds}")
+    shear = MICRO[MICRO.index('[[stage]]\nkind = "shear"'):]
+    return head + shear.replace('kind = "shear"', f'kind = "shear"\nsample = "{prepared}"', 1)
+
+
+def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path, monkeypatch):
+    """`tcd run --batch`: two samples (seeds 3 and 4, both from seed 3's prepared file) sheared
+    as one batched simulation give, each, exactly the series of the unbatched shear; a batch
+    interrupted mid-way resumes from its checkpoint to the same end; a scenario with a
+    preparation stage is refused with a message that says why."""
+    from tcd import runner
+    from tcd.config import load_scenario
+    _, out = micro_run
+    prepared = (out / "sample_3" / "prepared.h5").as_posix()
+    single = tmp_path / "single.toml"
+    single.write_text(_shear_only(prepared))
+    assert cli.main(["run", str(single), "--out", str(tmp_path / "one")]) == 0
+    pair = tmp_path / "pair.toml"
+    pair.write_text(_shear_only(prepared, "[3, 4]"))
+    assert cli.main(["run", str(pair), "--out", str(tmp_path / "batch"), "--batch"]) == 0
+    one = io.read_series(tmp_path / "one" / "sample_3" / "shear_series.h5")
+    for seed in (3, 4):
+        got = io.read_series(tmp_path / "batch" / f"sample_{seed}" / "shear_series.h5")
+        assert len(got["shear_stress"]) == len(one["shear_stress"]) > 10
+        for key in ("displacement", "shear_stress", "sweeps", "residual", "contacts",
+                    "bonds_intact", "kinetic_energy"):
+            assert np.array_equal(one[key], got[key]), (seed, key)
+    a = json.loads((tmp_path / "one" / "sample_3" / "summary.json").read_text())
+    summary = json.loads((tmp_path / "batch" / "summary.json").read_text())
+    assert summary["batched"] and [s["seed"] for s in summary["samples"]] == [3, 4]
+    for s in summary["samples"]:
+        assert s["tau_peak_MPa"] == a["tau_peak_MPa"] and s["bonds_total"] == a["bonds_total"] > 0
+    frames = io.read_frame(tmp_path / "batch" / "sample_4" / "states.h5", -1)
+    final = io.read_frame(tmp_path / "one" / "sample_3" / "states.h5", -1)
+    assert np.array_equal(frames["particles/x"], final["particles/x"])
+
+    class StopAfter(runner.DeferredInterrupt):
+        checks = 0
+
+        @property
+        def pending(self):
+            StopAfter.checks += 1
+            return StopAfter.checks > 15
+
+        @pending.setter
+        def pending(self, value):
+            pass
+
+    monkeypatch.setattr(runner, "DeferredInterrupt", StopAfter)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_batch(load_scenario(str(pair)), tmp_path / "cut", progress=False)
+    assert (tmp_path / "cut" / "batch_checkpoint.h5").exists()
+    assert not (tmp_path / "cut" / "summary.json").exists()
+    monkeypatch.undo()
+    assert cli.main(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
+    for seed in (3, 4):
+        got = io.read_series(tmp_path / "cut" / f"sample_{seed}" / "shear_series.h5")
+        assert np.array_equal(one["shear_stress"], got["shear_stress"]), seed
+        assert np.array_equal(one["time"], got["time"]), seed
+
+    scenario, _ = micro_run
+    assert cli.main(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
