@@ -8,6 +8,7 @@ Layout of an output directory:
     sample_<seed>/prepared.h5  the prepared sample (checkpoint format), loaded by the shear stage
     sample_<seed>/checkpoint.h5  latest checkpoint (every `output.checkpoint_every_s` s of wall time)
     sample_<seed>/summary.json   the sample's numbers per stage
+    batch_checkpoint.h5        with `run_batch` (tcd run --batch), the one checkpoint of the batch
 Every file is replaced atomically (tcd.io). `resume=True` continues each unfinished sample from
 its checkpoint; because phases, snapshot times and settle checks depend only on the simulation
 state and step counts, the resumed run ends with the same numbers as an uninterrupted one.

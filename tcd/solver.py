@@ -28,6 +28,7 @@ from . import contacts, laws
 from .state import COLOUR_WORDS, MAX_COLOURS, Partition, capacity_class
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
+SYSTEM_SPREAD = 1024         # loop iterations per batched system (see nlgs_serial)
 MODE_PAPER, MODE_BURGERS = 0, 1
 
 
@@ -355,98 +356,102 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     Batched systems (p.systems > 1) share no body, so the outer loop over systems is parallel
     (one thread per system) and each system sweeps its own contiguous particles, bonds and
     contacts until its own convergence: its numbers are those it would have alone."""
-    ti.loop_config(block_dim=1)         # one system per task: the systems spread over the cores
-    for sy in range(p.systems[None]):
-        q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
-        b0, b1 = bd.start[q0], bd.start[q1]
-        c0, c1 = ct.start[q0], ct.start[q1]
-        sweeps = 0
-        residual = 0.0
-        done = 0
-        n_part = p.count[None]
-        g2_prev = 0.0
-        while done == 0:
-            dsum = 0.0
-            rsum = 0.0
-            g2 = 0.0
-            measure = 0
-            if (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps:
-                measure = 1
-            # symmetric Gauss-Seidel: forward sweeps alternate with backward ones, so loads
-            # propagate both ways along the (height-correlated) particle order
-            backward = sweeps % 2
-            if ti.static(blocks == 1):
-                if b1 > b0:
-                    for b in range(b0, b1):
-                        bd.acc_d[b] = bd.impulse[b]
-                    for qq in range(q0, q1):
-                        q = qq
+    # Taichi's CPU runtime runs a parallel loop of a few iterations on one thread (measured:
+    # 2 or 64 iterations take as long as serially, 1024 split over the cores), so the
+    # systems are spread over SYSTEM_SPREAD iterations each, all but the first empty
+    for t in range(p.systems[None] * SYSTEM_SPREAD):
+        if t % SYSTEM_SPREAD == 0:
+            sy = t // SYSTEM_SPREAD
+            q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
+            b0, b1 = bd.start[q0], bd.start[q1]
+            c0, c1 = ct.start[q0], ct.start[q1]
+            sweeps = 0
+            residual = 0.0
+            done = 0
+            n_part = p.count[None]
+            g2_prev = 0.0
+            while done == 0:
+                dsum = 0.0
+                rsum = 0.0
+                g2 = 0.0
+                measure = 0
+                if (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps:
+                    measure = 1
+                # symmetric Gauss-Seidel: forward sweeps alternate with backward ones, so loads
+                # propagate both ways along the (height-correlated) particle order
+                backward = sweeps % 2
+                if ti.static(blocks == 1):
+                    if b1 > b0:
+                        for b in range(b0, b1):
+                            bd.acc_d[b] = bd.impulse[b]
+                        for qq in range(q0, q1):
+                            q = qq
+                            if backward == 1:
+                                q = q1 - 1 - (qq - q0)
+                            solve_particle_bonds(p, wl, bd, q)
+                        for b in range(b0, b1):
+                            if bd.state[b] == INTACT:
+                                r_new = bd.impulse[b]
+                                dr = r_new - bd.acc_d[b]
+                                bd.acc_d[b] = dr
+                                if ti.static(accel == 1):
+                                    g2 += dr.dot(dr)
+                                dsum += dr.norm()
+                                rsum += r_new.norm()
+                else:
+                    for bb in range(b0, b1):
+                        b = bb
                         if backward == 1:
-                            q = q1 - 1 - (qq - q0)
-                        solve_particle_bonds(p, wl, bd, q)
-                    for b in range(b0, b1):
-                        if bd.state[b] == INTACT:
-                            r_new = bd.impulse[b]
-                            dr = r_new - bd.acc_d[b]
+                            b = b1 - 1 - (bb - b0)
+                        dr, r_new = solve_bond_dr(p, wl, bd, b)
+                        if ti.static(accel == 1):
                             bd.acc_d[b] = dr
-                            if ti.static(accel == 1):
-                                g2 += dr.dot(dr)
-                            dsum += dr.norm()
-                            rsum += r_new.norm()
-            else:
-                for bb in range(b0, b1):
-                    b = bb
+                            g2 += dr.dot(dr)
+                        dsum += dr.norm()
+                        rsum += r_new.norm()
+                for kk in range(c0, c1):
+                    k = kk
                     if backward == 1:
-                        b = b1 - 1 - (bb - b0)
-                    dr, r_new = solve_bond_dr(p, wl, bd, b)
+                        k = c1 - 1 - (kk - c0)
+                    dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
                     if ti.static(accel == 1):
-                        bd.acc_d[b] = dr
+                        ct.acc_d[k] = dr
                         g2 += dr.dot(dr)
-                    dsum += dr.norm()
-                    rsum += r_new.norm()
-            for kk in range(c0, c1):
-                k = kk
-                if backward == 1:
-                    k = c1 - 1 - (kk - c0)
-                dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
+                    if measure == 1:
+                        dsum += dr.norm()
+                        rsum += r_new.norm()
+                sweeps += 1
+                if sweeps % check_every == 0 or sweeps >= max_sweeps:
+                    residual = 0.0
+                    if rsum > 0.0:
+                        residual = dsum / rsum
+                    if residual <= tol or sweeps >= max_sweeps:
+                        done = 1
                 if ti.static(accel == 1):
-                    ct.acc_d[k] = dr
-                    g2 += dr.dot(dr)
-                if measure == 1:
-                    dsum += dr.norm()
-                    rsum += r_new.norm()
-            sweeps += 1
-            if sweeps % check_every == 0 or sweeps >= max_sweeps:
-                residual = 0.0
-                if rsum > 0.0:
-                    residual = dsum / rsum
-                if residual <= tol or sweeps >= max_sweeps:
-                    done = 1
-            if ti.static(accel == 1):
-                if done == 0:
-                    beta = 0.0
-                    if g2_prev > 0.0:
-                        beta = g2 / g2_prev
-                    if beta > 1.0 or sweeps == 1:
+                    if done == 0:
                         beta = 0.0
-                    for b in range(b0, b1):
-                        if bd.state[b] == INTACT:
-                            pb = bd.acc_p[b]
-                            if beta > 0.0:
-                                dr = beta * pb
-                                bd.impulse[b] += dr
-                                apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
-                            bd.acc_p[b] = beta * pb + bd.acc_d[b]
-                    for k in range(c0, c1):
-                        pk = ct.acc_p[k]
-                        if beta > 0.0 and ct.wnn[k] > 0.0:
-                            dr = beta * pk
-                            ct.impulse[k] += dr
-                            apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
-                        ct.acc_p[k] = beta * pk + ct.acc_d[k]
-                g2_prev = g2
-        st.sys_sweeps[sy] = sweeps
-        st.sys_residual[sy] = residual
+                        if g2_prev > 0.0:
+                            beta = g2 / g2_prev
+                        if beta > 1.0 or sweeps == 1:
+                            beta = 0.0
+                        for b in range(b0, b1):
+                            if bd.state[b] == INTACT:
+                                pb = bd.acc_p[b]
+                                if beta > 0.0:
+                                    dr = beta * pb
+                                    bd.impulse[b] += dr
+                                    apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+                                bd.acc_p[b] = beta * pb + bd.acc_d[b]
+                        for k in range(c0, c1):
+                            pk = ct.acc_p[k]
+                            if beta > 0.0 and ct.wnn[k] > 0.0:
+                                dr = beta * pk
+                                ct.impulse[k] += dr
+                                apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
+                            ct.acc_p[k] = beta * pk + ct.acc_d[k]
+                    g2_prev = g2
+            st.sys_sweeps[sy] = sweeps
+            st.sys_residual[sy] = residual
     # over the systems: the most sweeps and the largest residual (fixed order)
     ti.loop_config(serialize=True)
     for _ in range(1):
