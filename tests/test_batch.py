@@ -138,3 +138,27 @@ def test_batch_rejects_mismatched_systems(pair):
         Simulation([0.001] * 3, [[0, 0, 0.01], [0, 0, 0.02], [0, 0, 0.03]], system=[0, 1, 0])
     with pytest.raises(ValueError, match="system must be an integer"):
         walls.plane((0, 0, 0), (0, 0, 1), system=-2)
+
+
+def test_coloured_schedule_batches_too(backend):
+    """The GPU's schedule (coloured Gauss-Seidel, one convergence test over the whole batch) on
+    the CPU: the systems stay apart, and each ends within a hundredth of the smallest radius of
+    where it goes alone (the batch may sweep more than a system alone needs)."""
+    settings = SolverSettings(max_sweeps=300, schedule="coloured")
+    a = pour(1, settings=settings)
+    b = pour(2, radii=a.radii(), settings=settings)
+    batch = Simulation.batch([a, b])
+    for _ in range(200):
+        a.step()
+        b.step()
+        batch.step()
+    assert batch.last.colours > 1 and batch.last.sweeps > 1
+    sweeps, residual = batch.system_stats()
+    assert np.all(sweeps == batch.last.sweeps) and np.all(residual <= settings.tolerance)
+    x = batch.positions()
+    for s, o in enumerate((a, b)):
+        assert np.abs(x[batch.system_slice(s)] - o.positions()).max() < 0.01 * a.r_min
+    c = batch.contact_arrays()
+    system = np.repeat([0, 1], a.n)
+    pp = c["j"] < batch.n
+    assert np.all(system[c["i"][pp]] == system[c["j"][pp]])
