@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import time
-import time as _time
 
 import numpy as np
 
@@ -55,8 +54,9 @@ def bed_metrics(sim, radius: float = CYLINDER_RADIUS) -> dict:
     }
 
 
-def _loop(sim, steps: int):
-    """Step and time the loop; the first step (compilation) is timed apart."""
+def _loop(sim, steps: int, per_system: bool = False):
+    """Step and time the loop; the first step (compilation) is timed apart. Sweeps and
+    residual per step, or with `per_system` per step and batched system (steps x systems)."""
     t0 = time.perf_counter()
     sim.step()
     compile_s = time.perf_counter() - t0
@@ -64,8 +64,9 @@ def _loop(sim, steps: int):
     t0 = time.perf_counter()
     for _ in range(steps - 1):
         rec = sim.step()
-        sweeps.append(rec.sweeps)
-        residuals.append(rec.residual)
+        sw, res = sim.system_stats() if per_system else (rec.sweeps, rec.residual)
+        sweeps.append(sw)
+        residuals.append(res)
     loop_s = time.perf_counter() - t0
     return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals)
 
@@ -182,18 +183,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     particles = sim.n
     bonds = sum(int(ph.info["bonds_created"]) for ph in phases)
     steps = max(2, int(round(time / sim.settings.time_step)))
-    t_start = _time.perf_counter()
-    sim.step()
-    compile_s = _time.perf_counter() - t_start
-    sweeps, residuals = [], []
-    t_start = _time.perf_counter()
-    for _ in range(steps - 1):
-        sim.step()
-        sw, res = sim.system_stats()
-        sweeps.append(sw)
-        residuals.append(res)
-    loop_s = _time.perf_counter() - t_start
-    sweeps, residuals = np.asarray(sweeps), np.asarray(residuals)
+    compile_s, loop_s, sweeps, residuals = _loop(sim, steps, per_system=True)
     out = {
         "benchmark": "shear", "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
         "particles": particles, "samples": samples, "steps": steps,

@@ -247,12 +247,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                 next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
             if step_in_phase % 100 == 0:
                 bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
-            if interrupt.pending or time.perf_counter() - last_ck >= scenario.output.checkpoint_every_s:
-                checkpoint()
-                last_ck = time.perf_counter()
-                if interrupt.pending:
-                    bar.close()
-                    raise KeyboardInterrupt
+            last_ck = _checkpoint_if_due(interrupt, last_ck, scenario.output.checkpoint_every_s,
+                                         checkpoint, bar)
         bar.close()
         checkpoint()
     wall = time.perf_counter() - t_loop
@@ -330,6 +326,19 @@ class DeferredInterrupt:
         return False
 
 
+def _checkpoint_if_due(interrupt, last_ck: float, every_s: float, save, bar) -> float:
+    """Checkpoint (`save()`) when `every_s` seconds of wall time have passed since `last_ck` or
+    a Ctrl-C is pending; after a Ctrl-C, stop (KeyboardInterrupt) once the checkpoint is
+    written. Returns the time of the latest checkpoint."""
+    if interrupt.pending or time.perf_counter() - last_ck >= every_s:
+        save()
+        last_ck = time.perf_counter()
+        if interrupt.pending:
+            bar.close()
+            raise KeyboardInterrupt
+    return last_ck
+
+
 def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
     with DeferredInterrupt() as interrupt:
         return _run_sample(scn, seed, sample_dir, resume=resume, progress=progress,
@@ -370,6 +379,10 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                 "bond_law": sim.bond_law.__dict__, "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
                 "tcd_version": __version__}
         io.save_checkpoint(ck_path, arrays, meta)
+
+    def timed_checkpoint():
+        result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
+        checkpoint()
 
     while stage_idx < len(scn.stages):
         stage = scn.stages[stage_idx]
@@ -414,14 +427,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                         and step_in_phase % SETTLE_CHECK_EVERY == 0
                         and settled(sim, getattr(stage, "settle_speed", 0.005))):
                     break
-                if (interrupt.pending
-                        or time.perf_counter() - last_ck >= scn.output.checkpoint_every_s):
-                    result["wall_time_s"][f"{stage_idx}:{stage.kind}"] = time.perf_counter() - t_stage
-                    checkpoint()
-                    last_ck = time.perf_counter()
-                    if interrupt.pending:
-                        bar.close()
-                        raise KeyboardInterrupt
+                last_ck = _checkpoint_if_due(interrupt, last_ck, scn.output.checkpoint_every_s,
+                                             timed_checkpoint, bar)
             bar.close()
             result.setdefault("phases", []).append({"stage": stage.kind, "phase": phase.name,
                                                     "steps": step_in_phase, "end_time": sim.time,
