@@ -93,7 +93,7 @@ def test_superimposed_systems_never_touch(backend):
     a = pour(3)
     b = pour(3)
     batch = Simulation.batch([a, b])
-    for _ in range(150):
+    for _ in range(100):
         batch.step()
         a.step()
     c = batch.contact_arrays()
@@ -148,7 +148,7 @@ def test_coloured_schedule_batches_too(backend):
     a = pour(1, settings=settings)
     b = pour(2, radii=a.radii(), settings=settings)
     batch = Simulation.batch([a, b])
-    for _ in range(200):
+    for _ in range(120):
         a.step()
         b.step()
         batch.step()
