@@ -150,8 +150,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     has one clock)."""
     import pathlib
     from .config import parse_scenario
-    from .protocols import Shear
-    from .runner import load_prepared
+    from .runner import plan_shears
     from .simulation import Simulation
     _init(arch, precision)
     if samples < 1:
@@ -162,20 +161,12 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     for path in paths:
         if not path.is_file():
             raise FileNotFoundError(f"prepared sample {path}: no such file")
-    sims, phases = [], []
-    for s, path in zip(seeds, paths):
-        scn = parse_scenario(f'name = "bench_shear"\nseeds = [{int(s)}]\n'
-                             f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
-                             f'[solver]\ntolerance = {float(tolerance)!r}\n'
-                             f'[[stage]]\nkind = "shear"\nsample = {str(path.resolve())!r}\n',
-                             "<bench shear>")
-        sims.append(load_prepared(scn, scn.stages[0].sample))
-    t0 = max(o.time for o in sims)
-    for s, o in zip(seeds, sims):
-        o.time = t0
-        phase, o = Shear(scn.stages[0], scn, s).plan(0, o, t0)
-        o.set_walls(phase.walls)
-        phases.append(phase)
+    scn = parse_scenario(f'name = "bench_shear"\nseeds = {seeds}\n'
+                         f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
+                         f'[solver]\ntolerance = {float(tolerance)!r}\n'
+                         f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
+                         "<bench shear>")
+    sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
     sim = sims[0] if samples == 1 else Simulation.batch(sims)
     if samples > 1:
         for o in sims:

@@ -184,14 +184,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             d.mkdir(parents=True, exist_ok=True)
             for stale in ("states.h5", "checkpoint.h5", "summary.json"):
                 (d / stale).unlink(missing_ok=True)
-        sims = [load_prepared(scenario, stage.sample.format(seed=seed)) for seed in seeds]
-        t0 = max(o.time for o in sims)
-        phases = []
-        for seed, o in zip(seeds, sims):
-            o.time = t0
-            phase, o = protos[seed].plan(0, o, t0)
-            o.set_walls(phase.walls)
-            phases.append(phase)
+        sims, phases = plan_shears(scenario, stage, seeds,
+                                   [stage.sample.format(seed=seed) for seed in seeds])
         batch = Simulation.batch(sims)
         for o in sims:
             o.close()
@@ -199,13 +193,13 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         series = [{} for _ in seeds]
         results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
                    for seed in seeds]
-        views = [SystemView(batch, k) for k in range(len(seeds))]
+    views = [SystemView(batch, k) for k in range(len(seeds))]
+    if not resume:
         for seed, view, res in zip(seeds, views, results):
             k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
                                 step=batch.step_index, stage="shear", scenario_text=scenario.text,
                                 tcd_version=__version__)
             res["stage_first_frame"] = {"0": k}
-    views = [SystemView(batch, k) for k in range(len(seeds))]
     t_loop = time.perf_counter() - wall_before
     last_ck = time.perf_counter()
 
@@ -253,14 +247,11 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         checkpoint()
     wall = time.perf_counter() - t_loop
     samples = []
-    units = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
-             "kinetic_energy": "J", "top_plate_shear_force": "N"}
     for k, (seed, view) in enumerate(zip(seeds, views)):
         res, arrays = results[k], {key: np.asarray(v) for key, v in series[k].items()}
-        first = res.get("stage_first_frame", {}).get("0")
         states = dirs[seed] / "states.h5"
-        x_start = io.read_frame(states, first)["particles/x"] if first is not None else None
-        numbers = protos[seed].finish(view, phases[k], arrays, x_start)
+        numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
+                                        res.get("stage_first_frame", {}).get("0"))
         numbers["wall_time_s"] = wall
         numbers["steps"] = int(len(arrays.get("time", [])) * scenario.output.series_every)
         res["stages"]["0:shear"] = numbers
@@ -268,20 +259,10 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         res["phases"] = [{"stage": "shear", "phase": phases[k].name, "steps": step_in_phase,
                           "end_time": batch.time, **phases[k].info}]
         res["last_phase"] = phases[k].to_json()
-        io.write_series(dirs[seed] / "shear_series.h5", arrays,
-                        units={key: u for key, u in units.items() if key in arrays},
-                        attrs={"tau_peak": numbers["tau_peak_MPa"] * 1e6,
-                               "d_peak": numbers["d_peak_mm"] * 1e-3,
-                               "smoothing_window": stage.smoothing_window_mm * 1e-3},
-                        csv_path=dirs[seed] / "shear_series.csv")
+        _write_series(dirs[seed], "shear", arrays, attrs)
         io.append_frame(states, frame_of(view), time=batch.time, step=batch.step_index,
                         stage="shear", scenario_text=scenario.text, tcd_version=__version__)
-        flat = {"seed": seed, **res}
-        flat.update({key: numbers[key] for key in ("tau_peak_MPa", "d_peak_mm", "residual_MPa",
-                                                   "bonds_total", "bonds_broken", "bonds_broken_tension",
-                                                   "bonds_broken_shear", "particles")})
-        io.write_json(dirs[seed] / "summary.json", flat)
-        samples.append(flat)
+        samples.append(_write_sample_summary(dirs[seed], seed, res))
     summary = summarize(scenario, samples)
     summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
     summary["batched"] = True
@@ -441,24 +422,15 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         # stage done: series, summary, prepared sample
         arrays = {k: np.asarray(v) for k, v in series.items()}
         if stage.kind == "shear":
-            first = result.get("stage_first_frame", {}).get(str(stage_idx))
-            x_start = io.read_frame(states, first)["particles/x"] if first is not None else None
-            numbers = proto.finish(sim, Phase.from_json(result["last_phase"]), arrays, x_start)
-            attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
-                     "smoothing_window": stage.smoothing_window_mm * 1e-3}
+            numbers, attrs = _shear_numbers(proto, sim, Phase.from_json(result["last_phase"]), arrays,
+                                            states, result.get("stage_first_frame", {}).get(str(stage_idx)))
         else:
             numbers = proto.finish(sim)
             attrs = {}
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)
         result["stages"][f"{stage_idx}:{stage.kind}"] = numbers
-        units = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
-                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
-                 "top_plate_shear_force": "N"}
-        if arrays:
-            io.write_series(sample_dir / f"{stage.kind}_series.h5", arrays,
-                            units={k: u for k, u in units.items() if k in arrays}, attrs=attrs,
-                            csv_path=sample_dir / f"{stage.kind}_series.csv")
+        _write_series(sample_dir, stage.kind, arrays, attrs)
         if stage.kind == "prepare":
             io.save_checkpoint(sample_dir / "prepared.h5", sim.state_dict(),
                                {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
@@ -469,6 +441,36 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         stage_idx += 1
         phase_idx = 0
         checkpoint()
+    flat = _write_sample_summary(sample_dir, seed, result)
+    sim.close()
+    return flat
+
+
+SERIES_UNITS = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
+                "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
+                "top_plate_shear_force": "N"}
+
+
+def _shear_numbers(proto, sim, phase, arrays: dict, states, first_frame) -> tuple[dict, dict]:
+    """A finished shear stage's numbers (with how far the grains moved since the stage's first
+    frame) and the attributes of its series file."""
+    x_start = io.read_frame(states, first_frame)["particles/x"] if first_frame is not None else None
+    numbers = proto.finish(sim, phase, arrays, x_start)
+    attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
+             "smoothing_window": proto.cfg.smoothing_window_mm * 1e-3}
+    return numbers, attrs
+
+
+def _write_series(sample_dir: pathlib.Path, kind: str, arrays: dict, attrs: dict) -> None:
+    if arrays:
+        io.write_series(sample_dir / f"{kind}_series.h5", arrays,
+                        units={k: u for k, u in SERIES_UNITS.items() if k in arrays}, attrs=attrs,
+                        csv_path=sample_dir / f"{kind}_series.csv")
+
+
+def _write_sample_summary(sample_dir: pathlib.Path, seed: int, result: dict) -> dict:
+    """sample_<seed>/summary.json: the run's record of the sample with each stage's headline
+    numbers at the top level; returns it."""
     flat = {"seed": seed, **result}
     for key, numbers in result["stages"].items():
         if key.endswith("prepare"):
@@ -478,8 +480,22 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                                                   "bonds_broken", "bonds_broken_tension", "bonds_broken_shear",
                                                   "particles")})
     io.write_json(sample_dir / "summary.json", flat)
-    sim.close()
     return flat
+
+
+def plan_shears(scn, stage, seeds, paths) -> tuple[list, list]:
+    """The prepared samples at `paths`, each with its shear (stage `stage`, seed from `seeds`)
+    planned and its walls set, all starting at the latest of the samples' clocks (so that they
+    can be batched: a batch has one clock). Returns (simulations, phases)."""
+    sims = [load_prepared(scn, path) for path in paths]
+    t0 = max(o.time for o in sims)
+    phases = []
+    for k, (seed, o) in enumerate(zip(seeds, sims)):
+        o.time = t0
+        phase, sims[k] = PROTOCOLS["shear"](stage, scn, seed).plan(0, o, t0)
+        sims[k].set_walls(phase.walls)
+        phases.append(phase)
+    return sims, phases
 
 
 def restore_simulation(scn, arrays: dict, meta: dict):

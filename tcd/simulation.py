@@ -615,14 +615,12 @@ class Simulation:
         merged["walls/force"] = np.concatenate([d["walls/force"] for d in states]).reshape(-1, 3)
         lo = np.min([o.domain[0] for o in sims], axis=0)
         hi = np.max([o.domain[1] for o in sims], axis=0)
-        r_min = min(o.r_min for o in sims)
         batch = cls(merged["particles/radius"], merged["particles/x"], walls=wall_list,
                     density=ref.density, layer=merged["particles/layer"], friction=ref.friction,
                     settings=ref.settings, bond_law=ref.bond_law, domain=(lo, hi),
                     cell_size=min(o.cell_size for o in sims), time=ref.time,
                     system=merged["particles/system"],
                     contact_capacity=max(64, int(1.25 * c_off) + 64))
-        assert batch.r_min == r_min
         batch.load_state_dict(merged)
         batch.step_index = ref.step_index
         return batch
@@ -749,7 +747,7 @@ class SystemView:
         self.slice = batch.system_slice(s)
         self.n = self.slice.stop - self.slice.start
         self.wall_index = [k for k, w in enumerate(batch.walls) if w.system == s]
-        self._split_step = None
+        self._split, self._split_step = None, None
 
     time = property(lambda self: self.batch.time)
     step_index = property(lambda self: self.batch.step_index)
@@ -805,13 +803,8 @@ class SystemView:
     def state_dict(self) -> dict:
         """The system's state as `Simulation.state_dict` of it alone (split of the batch, kept
         until the batch steps again)."""
-        if self._split_step != self.batch.step_index or self._split is None:
-            self._split = None
-            self._split_step = self.batch.step_index
-        if self._split is None:
+        if self._split_step != self.batch.step_index:
             d = dict(self.batch.split([self.s])[0])
             d.pop("walls")
-            self._split = d
+            self._split, self._split_step = d, self.batch.step_index
         return self._split
-
-    _split = None
