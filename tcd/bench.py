@@ -9,6 +9,7 @@ and timed apart.
 from __future__ import annotations
 
 import math
+import pathlib
 import time
 
 import numpy as np
@@ -93,7 +94,6 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
 
 
 def _sample_path(particles: int, seed: int):
-    import pathlib
     # v2: the prepared.h5 format of `tcd run` (walls, time, domain), loaded by protocols.Shear
     return pathlib.Path("runs") / "bench" / f"sample_{particles}_{seed}_v2.h5"
 
@@ -148,7 +148,6 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     wall time over (all particles x steps), and `per_sample` lists each system's sweeps and
     residual. Each sample starts its shear at the latest of their preparation clocks (a batch
     has one clock)."""
-    import pathlib
     from .config import parse_scenario
     from .runner import plan_shears
     from .simulation import Simulation
@@ -198,29 +197,49 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
 
 
 def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: str = "cpu",
-            precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling") -> dict:
+            precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
+            progress=None) -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
-    grows with N (same column height), timed over `steps` steps after 0.3 s of pouring."""
-    import csv
-    import pathlib
+    grows with N (same column height), timed over `steps` steps after 0.3 s of pouring.
+
+    The CSV and the plot are rewritten (atomically) after every size, so an interrupted scan
+    keeps the sizes it finished; `progress(row)` is called with each finished row."""
     _init(arch, precision)
     rows = []
     for n in sizes:
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
         sim = pour_setup(int(n), 1, tolerance, radius=radius)
+        t0 = time.perf_counter()
         for _ in range(int(0.3 / sim.settings.time_step)):
             sim.step()
+        pre_s = time.perf_counter() - t0
         compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+        contacts = int(sim.contact_arrays()["i"].size)
         rows.append({"particles": int(n), "seconds_per_particle_step": loop_s / (n * (steps - 1)),
                      "mean_sweeps": float(sweeps.mean()), "final_residual": float(residuals[-1]),
-                     "contacts": int(sim.contact_arrays()["i"].size),
+                     "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
+                     "contacts": contacts,
                      "seconds_per_contact_sweep": loop_s / max(1.0, float(sweeps.sum())) /
-                     max(1, sim.contact_arrays()["i"].size)})
+                     max(1, contacts),
+                     "memory_bytes_per_particle": sim.memory_bytes() / n,
+                     "timed_steps": steps - 1, "loop_wall_s": loop_s, "pour_wall_s": pre_s})
         sim.close()
+        _write_scaling(rows, out, arch, precision)
+        if progress is not None:
+            progress(rows[-1])
+    base = pathlib.Path(out)
+    return {"benchmark": "scaling", "arch": arch, "precision": precision, "rows": rows,
+            "csv": str(base.with_suffix(".csv")), "plot": str(base.with_suffix(".png"))}
+
+
+def _write_scaling(rows: list, out: str, arch: str, precision: str) -> None:
+    """The scan so far as CSV and log-log plot (both replaced atomically)."""
+    import csv
+    from . import io
     base = pathlib.Path(out)
     base.parent.mkdir(parents=True, exist_ok=True)
-    with open(base.with_suffix(".csv"), "w", newline="") as fh:
+    with io.atomic_path(base.with_suffix(".csv")) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -237,7 +256,6 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(base.with_suffix(".png"), dpi=120)
+    with io.atomic_path(base.with_suffix(".png")) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
-    return {"benchmark": "scaling", "arch": arch, "precision": precision, "rows": rows,
-            "csv": str(base.with_suffix(".csv")), "plot": str(base.with_suffix(".png"))}

@@ -224,8 +224,13 @@ def cmd_bench(args) -> int:
                 from None
         if not sizes or min(sizes) < 1:
             raise UsageError(f"--sizes {args.sizes!r}: expected positive particle counts")
+        def done(row):
+            print(f"scaling: N = {row['particles']}: {row['seconds_per_particle_step']:.3g} s per "
+                  f"particle-step, {row['mean_sweeps']:.0f} mean sweeps, residual "
+                  f"{row['final_residual']:.2g} ({row['pour_wall_s'] + row['loop_wall_s']:.0f} s)",
+                  file=sys.stderr, flush=True)
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
-                     tolerance=args.tolerance, out=args.out)
+                     tolerance=args.tolerance, out=args.out, progress=done)
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed)

@@ -220,6 +220,8 @@ def test_bench_passes_keyword_options(argv, expected, stub, capsys):
 
     def recorder(name):
         def bench(**kwargs):
+            if name == "scaling":       # a progress line per finished size
+                assert callable(kwargs.pop("progress"))
             calls.append((name, kwargs))
             return {"benchmark": name, "seconds_per_particle_step": 1.25e-6, "bed": {"top": 0.1}}
         return bench

@@ -1,0 +1,31 @@
+"""The benchmarks' own bookkeeping (their speed is measured by `tcd bench`, never here)."""
+import csv
+
+import pytest
+
+from tcd import bench
+
+
+def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatch):
+    """The scan writes its CSV and plot after every size: a scan stopped during its second size
+    keeps the first size's row, with the residual and sweeps that its timing bought."""
+    real_setup = bench.pour_setup
+    seen = []
+
+    def setup(particles, *args, **kwargs):
+        if particles == 600:
+            raise KeyboardInterrupt
+        return real_setup(particles, *args, **kwargs)
+    monkeypatch.setattr(bench, "pour_setup", setup)
+    out = tmp_path / "scan" / "scaling"
+    with pytest.raises(KeyboardInterrupt):
+        bench.scaling(sizes=(300, 600), steps=3, out=str(out), progress=seen.append)
+    rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
+    assert [int(r["particles"]) for r in rows] == [300] and [r["particles"] for r in seen] == [300]
+    row = rows[0]
+    assert float(row["seconds_per_particle_step"]) > 0 and int(row["timed_steps"]) == 2
+    assert float(row["final_residual"]) <= 1e-4 or int(row["max_sweeps_hit"]) > 0
+    assert float(row["memory_bytes_per_particle"]) > 0
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # nothing half-written is left beside the outputs
+    assert sorted(p.name for p in out.parent.iterdir()) == ["scaling.csv", "scaling.png"]
