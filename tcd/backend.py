@@ -14,8 +14,12 @@ PRECISIONS = ("f64", "f32")
 _state = {"arch": None, "precision": None}
 
 
-def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False) -> None:
+def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
+         cpu_threads: int | None = None) -> None:
     """Initialise Taichi for `arch` ("cpu" or "gpu") and `precision` ("f64" or "f32").
+    `cpu_threads`: size of Taichi's CPU thread pool (default: one per core). No result depends
+    on it: the serial schedule uses one thread, the partitioned one gives the same numbers on
+    any number of threads.
 
     A second call with the same settings is a no-op; a call with different settings raises,
     because Taichi cannot be re-initialised safely once fields exist.
@@ -32,8 +36,9 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False) -> N
         return
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else ti.gpu
+    extra = {} if cpu_threads is None else {"cpu_max_num_threads": int(cpu_threads)}
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
-            offline_cache=True, log_level=ti.WARN)
+            offline_cache=True, log_level=ti.WARN, **extra)
     _state["arch"], _state["precision"] = arch, precision
     if arch == "gpu" and ti.lang.impl.current_cfg().arch == ti.cpu:
         raise RuntimeError("arch='gpu' requested but Taichi found no GPU backend")

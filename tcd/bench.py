@@ -24,7 +24,8 @@ def _init(arch, precision):
 
 
 def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = CYLINDER_RADIUS,
-               course: str = "binder", max_sweeps: int = 1000):
+               course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
+               threads: int = 2):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -33,7 +34,8 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
     wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=radius, name="bottom"),
           walls.cylinder((0, 0, 0), (0, 0, 1), radius, (0.0, top + 0.01), name="mould")]
     sim = Simulation(r, x, walls=wl, friction=0.7,
-                     settings=SolverSettings(tolerance=tolerance, max_sweeps=max_sweeps),
+                     settings=SolverSettings(tolerance=tolerance, max_sweeps=max_sweeps,
+                                             schedule=schedule, threads=threads),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -73,9 +75,11 @@ def _loop(sim, steps: int, per_system: bool = False):
 
 
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
-         tolerance: float = 1e-4, seed: int = 1) -> dict:
+         tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2) -> dict:
+    """`schedule`, `threads`: the solver's (SolverSettings); `threads` only counts for the
+    partitioned schedule."""
     _init(arch, precision)
-    sim = pour_setup(particles, seed, tolerance)
+    sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads)
     steps = max(2, int(round(time / sim.settings.time_step)))
     compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
     out = {
@@ -89,6 +93,8 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "schedule": sim.schedule, "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
+    if sim.schedule == "partitioned":
+        out["threads"] = threads
     out.update(bed_metrics(sim))
     return out
 
@@ -136,7 +142,8 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 
 
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
-          tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1) -> dict:
+          tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
+          schedule: str = "auto", threads: int = 2) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -162,7 +169,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
             raise FileNotFoundError(f"prepared sample {path}: no such file")
     scn = parse_scenario(f'name = "bench_shear"\nseeds = {seeds}\n'
                          f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
-                         f'[solver]\ntolerance = {float(tolerance)!r}\n'
+                         f'[solver]\ntolerance = {float(tolerance)!r}\nschedule = "{schedule}"\n'
+                         f'threads = {int(threads)}\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
                          "<bench shear>")
     sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
@@ -182,7 +190,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "mean_sweeps": float(sweeps.mean()),
         "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
         "final_residual": float(residuals[-1].max()), "tolerance": tolerance, "arch": arch,
-        "precision": precision, "schedule": sim.schedule, "loop_wall_s": loop_s,
+        "precision": precision, "schedule": sim.schedule,
+        **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
         "contacts": int(sim.contact_arrays()["i"].size),
         "max_overlap_ratio": bed_metrics(sim)["max_overlap_ratio"],
@@ -198,7 +207,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
 
 def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: str = "cpu",
             precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
-            progress=None) -> dict:
+            progress=None, schedule: str = "auto", threads: int = 2) -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after 0.3 s of pouring.
@@ -209,7 +218,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     rows = []
     for n in sizes:
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
-        sim = pour_setup(int(n), 1, tolerance, radius=radius)
+        sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads)
         t0 = time.perf_counter()
         for _ in range(int(0.3 / sim.settings.time_step)):
             sim.step()

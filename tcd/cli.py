@@ -230,10 +230,12 @@ def cmd_bench(args) -> int:
                   f"{row['final_residual']:.2g} ({row['pour_wall_s'] + row['loop_wall_s']:.0f} s)",
                   file=sys.stderr, flush=True)
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
-                     tolerance=args.tolerance, out=args.out, progress=done)
+                     tolerance=args.tolerance, out=args.out, progress=done,
+                     schedule=args.schedule, threads=args.threads)
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
-                       tolerance=args.tolerance, seed=args.seed)
+                       tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
+                       threads=args.threads)
         if getattr(args, "samples", 1) > 1:
             options["samples"] = args.samples
         if getattr(args, "sample", None):
@@ -372,6 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="simulated seconds (default: the benchmark's own)")
         _backend_options(b, default_arch="cpu", default_precision="f64")
         b.add_argument("--tolerance", type=_positive_float, default=1e-4)
+        _schedule_options(b)
         b.add_argument("--seed", type=int, default=1)
         b.add_argument("--json", action="store_true", help="print JSON instead of a table")
         b.add_argument("--repeat", type=_positive_int, default=1, metavar="N",
@@ -388,10 +391,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--steps", type=_positive_int, default=200)
     _backend_options(b, default_arch="cpu", default_precision="f64")
     b.add_argument("--tolerance", type=_positive_float, default=1e-4)
+    _schedule_options(b)
     b.add_argument("--out", default="renders/scaling", metavar="DIR")
     b.add_argument("--json", action="store_true", help="print JSON instead of a table")
     b.set_defaults(handler=cmd_bench)
     return parser
+
+
+def _schedule_options(parser) -> None:
+    parser.add_argument("--schedule", choices=("auto", "serial", "partitioned", "coloured"),
+                        default="auto", help="Gauss-Seidel schedule (default: serial on the "
+                        "CPU, coloured on the GPU)")
+    parser.add_argument("--threads", type=_positive_int, default=2, metavar="P",
+                        help="threads of the partitioned schedule (its numbers depend on P)")
 
 
 def _error(message) -> int:

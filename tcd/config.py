@@ -100,8 +100,9 @@ class BackendConfig(_Model):
 class SolverConfig(_Model):
     """Moreau-Jean / NLGS settings. time_step H (s); theta in [0.5, 1]; tolerance on the
     relative impulse change per sweep; max_sweeps per step; check_every: sweeps between
-    convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial" or
-    "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
+    convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
+    "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
+    `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
     "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
     overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
     position projection leaves contacts alone; projection_passes: its sweeps (0: off);
@@ -112,7 +113,8 @@ class SolverConfig(_Model):
     tolerance: float = Field(1e-4, gt=0)
     max_sweeps: int = Field(1000, ge=1)
     check_every: int = Field(1, ge=1)
-    schedule: Literal["auto", "serial", "coloured"] = "auto"
+    schedule: Literal["auto", "serial", "partitioned", "coloured"] = "auto"
+    threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
@@ -133,6 +135,7 @@ class SolverConfig(_Model):
         return SolverSettings(time_step=self.time_step, theta=self.theta,
                               tolerance=self.tolerance, max_sweeps=self.max_sweeps,
                               check_every=self.check_every, schedule=self.schedule,
+                              threads=self.threads,
                               acceleration=self.acceleration, alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,

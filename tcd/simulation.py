@@ -19,12 +19,12 @@ from typing import Sequence
 import numpy as np
 import taichi as ti
 
-from . import backend, contacts as ck, solver as sk
-from .state import (MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Particles, SolverStats,
-                    WallFields, acquire, capacity_class, field_bytes, get, put, release)
+from . import backend, contacts as ck, partitioned as pk, solver as sk
+from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Partition,
+                    Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
-SCHEDULES = ("auto", "serial", "coloured")
+SCHEDULES = ("auto", "serial", "partitioned", "coloured")
 ACCELERATIONS = ("nncg", "none")
 
 
@@ -36,7 +36,9 @@ class CapacityError(RuntimeError):
 class SolverSettings:
     """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the relative
     impulse change per sweep; max_sweeps; check_every (sweeps between convergence checks);
-    schedule: "serial", "coloured" or "auto" (serial on CPU, coloured on GPU); acceleration:
+    schedule: "serial", "partitioned" (the serial sweep split over `threads` CPU threads:
+    tcd/partitioned.py; its numbers depend on `threads`), "coloured" or "auto" (serial on CPU,
+    coloured on GPU); threads: parts of the partitioned schedule; acceleration:
     "nncg" (nonsmooth nonlinear conjugate gradient on top of the serial Gauss-Seidel sweeps) or
     "none" (plain Gauss-Seidel; the coloured schedule is always plain); alert_ratio:
     alert distance as a fraction of the smallest radius; gravity (m/s^2, vector);
@@ -50,6 +52,7 @@ class SolverSettings:
     max_sweeps: int = 1000
     check_every: int = 1
     schedule: str = "auto"
+    threads: int = 2
     acceleration: str = "nncg"
     alert_ratio: float = 0.1
     gravity: tuple = (0.0, 0.0, -9.81)
@@ -68,6 +71,8 @@ class SolverSettings:
             raise ValueError("max_sweeps and check_every must be >= 1")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if not 1 <= self.threads <= MAX_PARTS:
+            raise ValueError(f"threads must be in [1, {MAX_PARTS}], got {self.threads}")
         if self.acceleration not in ACCELERATIONS:
             raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
                              f"{self.acceleration!r}")
@@ -172,6 +177,10 @@ class Simulation:
         self.schedule = settings.schedule
         if self.schedule == "auto":
             self.schedule = "serial" if backend.arch() == "cpu" else "coloured"
+        if self.schedule == "partitioned" and self.systems > 1:
+            raise ValueError("the partitioned schedule splits ONE system over threads; a batch of "
+                             f"{self.systems} systems already runs one thread per system on the "
+                             "serial schedule: use schedule = \"serial\"")
 
         self.particles = acquire(Particles, n)
         p = self.particles
@@ -211,6 +220,7 @@ class Simulation:
         self.contacts = acquire(Contacts, cap, self.particles.capacity)
         self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.colours = None
+        self.partition = None
         self.stats = acquire(SolverStats, 1)
         self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
         self.grow_events: list[str] = []
@@ -237,7 +247,8 @@ class Simulation:
 
     def close(self) -> None:
         """Hand the fields back to the pool for the next simulation (done on deletion too)."""
-        for name in ("particles", "wall_fields", "grid", "contacts", "bonds", "colours", "stats"):
+        for name in ("particles", "wall_fields", "grid", "contacts", "bonds", "colours", "partition",
+                     "stats"):
             release(self.__dict__.pop(name, None))
 
     def __del__(self):
@@ -325,6 +336,9 @@ class Simulation:
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
                            1 if s.acceleration == "nncg" else 0, 1 if s.bond_blocks else 0)
             colours = 0
+        elif self.schedule == "partitioned":
+            self._solve_partitioned()
+            colours = 0
         else:
             colours = self._solve_coloured()
         if bd.total[None] > 0:
@@ -344,6 +358,19 @@ class Simulation:
         self.step_index += 1
         self.last = StepRecord(self.time, int(self.stats.sweeps[None]), float(self.stats.residual[None]),
                                int(ct.total[None]), colours, self.bonds_intact_count())
+
+    def _solve_partitioned(self) -> None:
+        s = self.settings
+        p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
+        need = max(ct.capacity, bd.capacity, p.capacity)
+        if self.partition is None or self.partition.capacity < need:
+            release(self.partition)
+            self.partition = acquire(Partition, need, p.capacity)
+        blocks = 1 if s.bond_blocks else 0
+        pk.partition_items(p, ct, bd, self.partition, s.threads, blocks)
+        pk.nlgs_partitioned(p, wl, ct, bd, self.stats, self.partition, s.threads, s.max_sweeps,
+                            s.tolerance, s.check_every, 1 if s.acceleration == "nncg" else 0,
+                            blocks)
 
     def _solve_coloured(self) -> int:
         s = self.settings
@@ -678,8 +705,7 @@ class Simulation:
 
     def memory_bytes(self) -> int:
         parts = [self.particles, self.contacts, self.bonds, self.grid, self.wall_fields]
-        if self.colours is not None:
-            parts.append(self.colours)
+        parts += [o for o in (self.colours, self.partition) if o is not None]
         return sum(field_bytes(o) for o in parts)
 
     # ---------------------------------------------------------------- convenience readers

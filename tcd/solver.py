@@ -9,10 +9,9 @@ through the body velocities. Two schedules run the same local solves:
   coloured so that one colour never shares a dynamic body (walls excepted); the items of one
   colour are solved in parallel, colour after colour, one launch per colour. For many-core
   devices (GPU).
-- "partitioned" (`nlgs_partitioned`, opt-in, not used by Simulation): the serial order
-  rearranged as (half 0, half 1, boundary) so the two halves run on two threads. Measured on
-  2 CPU cores with 6300 contacts it is SLOWER than "serial" (one launch per sweep from Python
-  plus thread dispatch costs more than the halved sweep): kept for GPU/many-core experiments.
+- "partitioned" (tcd/partitioned.py): the serial sweep split over P CPU threads (P index
+  ranges of particles, their interior items at once, then the boundary items), all sweeps in
+  one launch. Numbers depend on P, never on thread timing.
 Convergence: the relative change of impulses over a sweep, sum |dR| / sum |R|, checked every
 `check_every` sweeps (and at `max_sweeps`); the step stops when it is below `tolerance` or at
 `max_sweeps`. The two norms per contact are only computed on the sweeps that check.
@@ -25,7 +24,7 @@ contact updates are plain load/store (no atomics): no two threads ever touch one
 import taichi as ti
 
 from . import contacts, laws
-from .state import COLOUR_WORDS, MAX_COLOURS, Partition, capacity_class
+from .state import COLOUR_WORDS, MAX_COLOURS
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
 SYSTEM_SPREAD = 1024         # loop iterations per batched system (see nlgs_serial)
@@ -464,50 +463,6 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
         st.residual[None] = residual
 
 
-# --- two-thread partitioned schedule of the same Gauss-Seidel ------------------------------------
-@ti.kernel
-def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template()):
-    """Split the bodies by index at the first particle of the middle contact (contacts are
-    grouped by ascending i, so each half holds about half of them) and list the items:
-    interior of half 0, interior of half 1, boundary; canonical order inside each list.
-    Halves by index, not by position: each thread then writes its own contiguous range of
-    body and contact records (no cache line shared between the two threads), and particle
-    index follows height in poured samples, so few contacts join the halves. Broken bonds are
-    left out. Serial passes: deterministic, O(items)."""
-    n = p.count[None]
-    nb = bd.total[None]
-    nc = ct.total[None]
-    split = n
-    if nc > 0:
-        split = ct.i[nc // 2]
-    for b in range(n):
-        pt.part[b] = 0
-        if b >= split:
-            pt.part[b] = 1
-    for c in range(4):
-        pt.start[c] = 0
-    ti.loop_config(serialize=True)
-    for q in range(nb + nc):
-        lst = item_list(p, ct, bd, pt, q, nb, n)
-        if lst >= 0:
-            pt.start[lst + 1] += 1
-    ti.loop_config(serialize=True)
-    for c in range(3):
-        pt.start[c + 1] += pt.start[c]
-    ti.loop_config(serialize=True)
-    for q in range(nb + nc):
-        lst = item_list(p, ct, bd, pt, q, nb, n)
-        if lst >= 0:
-            pt.order[pt.start[lst]] = q
-            pt.start[lst] += 1
-    # the scatter advanced start[0..2] to the list ends: shift back
-    ti.loop_config(serialize=True)
-    for c in range(3):
-        cc = 2 - c
-        pt.start[cc + 1] = pt.start[cc]
-    pt.start[0] = 0
-
-
 @ti.func
 def item_bodies(ct: ti.template(), bd: ti.template(), q, nb):
     """Bodies (i, j) of item q (q < nb: bond q, else contact q - nb) and 1 if it is active
@@ -522,94 +477,6 @@ def item_bodies(ct: ti.template(), bd: ti.template(), q, nb):
     else:
         i, j = ct.i[q - nb], ct.j[q - nb]
     return i, j, active
-
-
-@ti.func
-def item_list(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(), q, nb, n):
-    """0 or 1: interior of that half (walls belong to both); 2: boundary; -1: inactive."""
-    i, j, active = item_bodies(ct, bd, q, nb)
-    lst = -1
-    if active == 1:
-        lst = pt.part[i]
-        if j < n:
-            if pt.part[j] != lst:
-                lst = 2
-    return lst
-
-
-@ti.func
-def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(), q,
-               nb, n_part, measure):
-    da = 0.0
-    ra = 0.0
-    if q < nb:
-        da, ra = solve_bond(p, wl, bd, q)
-    else:
-        da, ra = solve_contact(p, wl, ct, q - nb, n_part, measure)
-    return da, ra
-
-
-@ti.func
-def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-               pt: ti.template(), lst, backward, measure):
-    nb = bd.total[None]
-    n_part = p.count[None]
-    a, b = pt.start[lst], pt.start[lst + 1]
-    dsum = 0.0
-    rsum = 0.0
-    for s in range(a, b):
-        q = pt.order[s]
-        if backward == 1:
-            q = pt.order[a + b - 1 - s]
-        da, ra = solve_item(p, wl, ct, bd, q, nb, n_part, measure)
-        dsum += da
-        rsum += ra
-    pt.change[lst] = ti.Vector([dsum, rsum])
-
-
-@ti.kernel
-def nlgs_partitioned_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(),
-                           bd: ti.template(), pt: ti.template(), backward: ti.i32,
-                           measure: ti.i32) -> float:
-    """One Gauss-Seidel sweep in the order (half 0, half 1, boundary), reversed when
-    `backward`. The two halves share no dynamic body, so they run on two threads at once with
-    exactly the result of running them one after the other. Returns the residual
-    sum |dR| / sum |R| of the sweep when `measure` (else 0), summed in a fixed order."""
-    if backward == 1:
-        sweep_list(p, wl, ct, bd, pt, 2, backward, measure)
-    ti.loop_config(block_dim=1)
-    for half in range(2):
-        sweep_list(p, wl, ct, bd, pt, half, backward, measure)
-    if backward == 0:
-        sweep_list(p, wl, ct, bd, pt, 2, backward, measure)
-    d = pt.change[0][0] + pt.change[1][0] + pt.change[2][0]
-    r = pt.change[0][1] + pt.change[1][1] + pt.change[2][1]
-    res = 0.0
-    if r > 0.0:
-        res = d / r
-    return res
-
-
-def nlgs_partitioned(p, wl, ct, bd, st, max_sweeps: int, tol: float, check_every: int) -> None:
-    """The serial Gauss-Seidel on two threads (same stopping rule as `nlgs_serial`): the items
-    are listed once per step (`partition_items`), then one launch per sweep. The Partition
-    lives with the contact container (pooled with it) and grows with the item count."""
-    need = int(ct.total[None] + bd.total[None])
-    if ct.partition is None or ct.partition.capacity < need:
-        ct.partition = Partition(capacity_class(need), p.capacity)
-    pt = ct.partition
-    partition_items(p, ct, bd, pt)
-    sweeps, residual = 0, 0.0
-    while True:
-        measure = (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps
-        res = nlgs_partitioned_sweep(p, wl, ct, bd, pt, sweeps % 2, int(measure))
-        sweeps += 1
-        if measure:
-            residual = res
-            if residual <= tol or sweeps >= max_sweeps:
-                break
-    st.sweeps[None] = sweeps
-    st.residual[None] = residual
 
 
 # --- colouring for the parallel schedule -------------------------------------------------------

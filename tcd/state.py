@@ -17,6 +17,7 @@ from . import backend
 
 MAX_WALLS = 64
 MAX_SYSTEMS = 64            # independent systems (samples) batched in one simulation
+MAX_PARTS = 64              # threads of the partitioned Gauss-Seidel (tcd/partitioned.py)
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
 
@@ -215,7 +216,6 @@ class Contacts:
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
         self.total = _scalar()
         self.prev_total = _scalar()
-        self.partition = None       # two-thread schedule (Partition), made when first needed
 
     def reset(self):
         self.total[None] = 0
@@ -280,18 +280,26 @@ class ColourSet:
 
 @ti.data_oriented
 class Partition:
-    """Two-thread schedule of the serial Gauss-Seidel: bodies split into two halves by index
-    (part per body, see solver.partition_items). Items (bonds first, then contacts, as in ColourSet) are
-    listed in `order` (canonical order kept) as: interior of half 0, interior of half 1, then
-    the boundary items that join the halves; `start` is the CSR of these three lists. change:
-    per list (sum |dR|, sum |R|) of the last sweep."""
+    """Item lists of the partitioned (multi-thread) Gauss-Seidel, see tcd/partitioned.py.
+
+    part: range of each particle (0 .. parts-1). Bond items (particle blocks or bonds) in
+    `border` and contacts in `corder`, each as CSR lists over (range 0, ..., range parts-1,
+    boundary): `bstart`, `cstart` (MAX_PARTS + 2 entries), canonical order inside a list.
+    sums: per list (sum |dR|, sum |R|, sum |dR|^2) of the contacts in the current sweep.
+    claim, finished, released, stop: the workers' counters; beta, g2_prev, residual: the NNCG
+    momentum and the last measured residual, shared between the workers."""
 
     def __init__(self, capacity: int, particle_capacity: int):
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         self.part = _int(particle_capacity)
-        self.order = _int(capacity)
-        self.start = _int(4)
-        self.change = ti.Vector.field(2, backend.real(), shape=3)
+        self.border, self.corder = _int(capacity), _int(capacity)
+        self.bstart, self.cstart = _int(MAX_PARTS + 2), _int(MAX_PARTS + 2)
+        self.bcur, self.ccur = _int(MAX_PARTS + 1), _int(MAX_PARTS + 1)
+        self.sums = _vec(MAX_PARTS + 1)
+        self.claim, self.finished, self.released, self.stop = (_scalar(), _scalar(), _scalar(),
+                                                              _scalar())
+        self.beta, self.g2_prev, self.residual = (_scalar(backend.real()), _scalar(backend.real()),
+                                                  _scalar(backend.real()))
 
     def reset(self):
         pass
@@ -321,9 +329,7 @@ def field_bytes(obj) -> int:
     """Bytes held by the Taichi fields of a container (for memory reports)."""
     total = 0
     for v in vars(obj).values():
-        if isinstance(v, Partition):
-            total += field_bytes(v)
-        elif isinstance(v, ti.MatrixField):
+        if isinstance(v, ti.MatrixField):
             total += int(np.prod(v.shape)) * v.n * v.m * np.dtype(_np_dtype(v)).itemsize
         elif isinstance(v, ti.Field):
             total += int(np.prod(v.shape)) * np.dtype(_np_dtype(v)).itemsize

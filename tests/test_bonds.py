@@ -289,7 +289,7 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
 
 
 @pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
-                                            ("burgers", "coloured")])
+                                            ("burgers", "partitioned"), ("burgers", "coloured")])
 def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule):
     """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two
     bonds share the load (F J / 2 of displacement, F / 2 each: one in tension, one in

@@ -1,0 +1,293 @@
+"""The serial Gauss-Seidel split over P CPU threads (schedule "partitioned").
+
+The particles are split into P contiguous index ranges of about equal work (in a poured sample
+the particle index follows height, so few contacts join two ranges). An item -- a contact, or a
+bond item (a particle's bond block, or a single bond) -- whose dynamic bodies all lie in range
+k is interior to k; the others are boundary items. One sweep is: the P interior lists at once
+(unit k: range k's bond items, then its contacts), then, on one thread, the boundary list
+(bond items, then contacts), the convergence test and the conjugate-gradient (NNCG) momentum of
+the bonds and boundary contacts; the momentum of the interior contacts opens the next sweep's
+units. Forward and backward sweeps alternate inside every list, as in `solver.nlgs_serial`.
+Two interior lists share no dynamic body, so running them at once gives exactly the numbers of
+running them one after the other: the result depends on P (it fixes the visiting order), never
+on thread timing or on how many threads Taichi really has. Same scenario, same P, same numbers.
+
+The whole step is ONE kernel launch. Taichi's CPU thread pool wakes its threads for every
+parallel loop (measured here: about 50 us, as long as a sweep of a few thousand contacts), so
+the sweeps are not separate parallel loops: P worker iterations of one loop run all the sweeps
+and meet at the end of each through counters in memory (sequentially consistent atomics, so
+every body and impulse written before a counter's increment is seen by the thread that reads
+it). Units are claimed, not assigned: a worker takes the next unit with an atomic increment,
+waits until its sweep is released, runs it, and the worker that finishes a sweep's last unit
+runs the boundary and releases the next sweep. A worker never waits for a unit that no running
+thread holds, so the schedule finishes with any number of threads, one included.
+
+Bonds are kept exactly as in the serial kernel: each bond's change over a sweep is measured
+against a snapshot of the impulses taken when the sweep is released, and the bonds' momentum
+pass is serial (one pass over the bonds per sweep, cheap next to the block solves).
+"""
+
+import taichi as ti
+
+from . import solver as sk
+from .solver import INTACT, SYSTEM_SPREAD
+
+
+# --- the item lists ------------------------------------------------------------------------------
+@ti.func
+def particle_work(ct: ti.template(), bd: ti.template(), q, blocks: ti.template()):
+    """Relative cost of the items owned by particle q: its contacts (grouped under their first
+    particle) and its bond items (a block solve costs about three contact updates per bond)."""
+    w = ct.start[q + 1] - ct.start[q]
+    if ti.static(blocks == 1):
+        w += 3 * sk.particle_bond_count(bd, q)
+    else:
+        w += bd.start[q + 1] - bd.start[q]
+    return w
+
+
+@ti.func
+def bond_item_list(p: ti.template(), bd: ti.template(), pt: ti.template(), q, parts,
+                   blocks: ti.template()):
+    """List of bond item q: its range k when all its bodies lie in range k, `parts` (the
+    boundary) otherwise, -1 when inactive (a broken bond, a particle without intact bonds)."""
+    lst = -1
+    if ti.static(blocks == 1):
+        k = pt.part[q]
+        count = 0
+        cross = 0
+        for m in range(sk.particle_bond_count(bd, q)):
+            b = sk.particle_bond(bd, q, m)
+            if bd.state[b] == INTACT:
+                count += 1
+                if pt.part[bd.i[b] + bd.j[b] - q] != k:
+                    cross = 1
+        if count > 0:
+            lst = k
+            if cross == 1:
+                lst = parts
+    else:
+        if bd.state[q] == INTACT:
+            lst = pt.part[bd.i[q]]
+            if pt.part[bd.j[q]] != lst:
+                lst = parts
+    return lst
+
+
+@ti.func
+def contact_list(p: ti.template(), ct: ti.template(), pt: ti.template(), c, parts):
+    lst = pt.part[ct.i[c]]
+    j = ct.j[c]
+    if j < p.count[None]:
+        if pt.part[j] != lst:
+            lst = parts
+    return lst
+
+
+@ti.kernel
+def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(),
+                    parts: ti.i32, blocks: ti.template()):
+    """Split the particles into `parts` index ranges of about equal work and list the items of
+    each range (bond items in `border`, CSR `bstart`; contacts in `corder`, CSR `cstart`),
+    list `parts` being the boundary. Canonical order inside every list. Serial, O(items)."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        n = p.count[None]
+        nb = bd.total[None]
+        if ti.static(blocks == 1):
+            nb = n
+        nc = ct.total[None]
+        total = 0
+        for q in range(n):
+            total += particle_work(ct, bd, q, blocks)
+        acc = 0
+        for q in range(n):
+            k = 0
+            if total > 0:
+                k = ti.min(parts - 1, ti.cast(ti.cast(acc, ti.f64) * parts / total, ti.i32))
+            pt.part[q] = k
+            acc += particle_work(ct, bd, q, blocks)
+        for c in range(parts + 2):
+            pt.bstart[c] = 0
+            pt.cstart[c] = 0
+        for q in range(nb):
+            lst = bond_item_list(p, bd, pt, q, parts, blocks)
+            if lst >= 0:
+                pt.bstart[lst + 1] += 1
+        for c in range(nc):
+            pt.cstart[contact_list(p, ct, pt, c, parts) + 1] += 1
+        for c in range(parts + 1):
+            pt.bstart[c + 1] += pt.bstart[c]
+            pt.cstart[c + 1] += pt.cstart[c]
+        for c in range(parts + 1):
+            pt.bcur[c] = pt.bstart[c]
+            pt.ccur[c] = pt.cstart[c]
+        for q in range(nb):
+            lst = bond_item_list(p, bd, pt, q, parts, blocks)
+            if lst >= 0:
+                pt.border[pt.bcur[lst]] = q
+                pt.bcur[lst] += 1
+        for c in range(nc):
+            lst = contact_list(p, ct, pt, c, parts)
+            pt.corder[pt.ccur[lst]] = c
+            pt.ccur[lst] += 1
+
+
+# --- one list of one sweep -----------------------------------------------------------------------
+@ti.func
+def contact_momentum(p: ti.template(), ct: ti.template(), c, beta):
+    """The NNCG momentum of contact c (as in solver.nlgs_serial)."""
+    pk = ct.acc_p[c]
+    if beta > 0.0 and ct.wnn[c] > 0.0:
+        dr = beta * pk
+        ct.impulse[c] += dr
+        sk.apply_impulse(p, ct.i[c], ct.j[c], ct.normal[c], dr)
+    ct.acc_p[c] = beta * pk + ct.acc_d[c]
+
+
+@ti.func
+def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+               pt: ti.template(), lst, backward, measure, accel: ti.template(),
+               blocks: ti.template()):
+    """Bond items then contacts of list `lst`, forward or backward; the contacts' sums
+    (|dR|, |R| when `measure`, |dR|^2 with NNCG) go to pt.sums[lst]."""
+    n_part = p.count[None]
+    a, b = pt.bstart[lst], pt.bstart[lst + 1]
+    for s in range(a, b):
+        q = pt.border[s]
+        if backward == 1:
+            q = pt.border[a + b - 1 - s]
+        if ti.static(blocks == 1):
+            sk.solve_particle_bonds(p, wl, bd, q)
+        else:
+            sk.solve_bond_dr(p, wl, bd, q)
+    dsum = 0.0
+    rsum = 0.0
+    g2 = 0.0
+    a, b = pt.cstart[lst], pt.cstart[lst + 1]
+    for s in range(a, b):
+        k = pt.corder[s]
+        if backward == 1:
+            k = pt.corder[a + b - 1 - s]
+        dr, r_new = sk.solve_contact_dr(p, wl, ct, k, n_part)
+        if ti.static(accel == 1):
+            ct.acc_d[k] = dr
+            g2 += dr.dot(dr)
+        if measure == 1:
+            dsum += dr.norm()
+            rsum += r_new.norm()
+    pt.sums[lst] = ti.Vector([dsum, rsum, g2])
+
+
+@ti.func
+def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                st: ti.template(), pt: ti.template(), s, parts, max_sweeps, tol, check_every,
+                accel: ti.template(), blocks: ti.template()):
+    """After the last unit of sweep s, on one thread: the boundary list, the bonds' changes,
+    the convergence test; then either the end (pt.stop) or the momentum of the bonds and
+    boundary contacts, the bonds' snapshot and the release of sweep s + 1."""
+    sweeps = s + 1
+    measure = 0
+    if sweeps % check_every == 0 or sweeps >= max_sweeps:
+        measure = 1
+    sweep_list(p, wl, ct, bd, pt, parts, s % 2, measure, accel, blocks)
+    dsum = 0.0
+    rsum = 0.0
+    g2 = 0.0
+    for b in range(bd.total[None]):
+        if bd.state[b] == INTACT:
+            r_new = bd.impulse[b]
+            dr = r_new - bd.acc_d[b]
+            bd.acc_d[b] = dr
+            if ti.static(accel == 1):
+                g2 += dr.dot(dr)
+            dsum += dr.norm()
+            rsum += r_new.norm()
+    for k in range(parts + 1):
+        dsum += pt.sums[k][0]
+        rsum += pt.sums[k][1]
+        g2 += pt.sums[k][2]
+    done = 0
+    if measure == 1:
+        residual = 0.0
+        if rsum > 0.0:
+            residual = dsum / rsum
+        pt.residual[None] = residual
+        if residual <= tol or sweeps >= max_sweeps:
+            done = 1
+    if done == 1:
+        st.sweeps[None] = sweeps
+        st.residual[None] = pt.residual[None]
+        st.sys_sweeps[0] = sweeps
+        st.sys_residual[0] = pt.residual[None]
+        ti.atomic_add(pt.stop[None], 1)
+    else:
+        if ti.static(accel == 1):
+            beta = 0.0
+            if pt.g2_prev[None] > 0.0:
+                beta = g2 / pt.g2_prev[None]
+            if beta > 1.0 or sweeps == 1:
+                beta = 0.0
+            for b in range(bd.total[None]):
+                if bd.state[b] == INTACT:
+                    pb = bd.acc_p[b]
+                    if beta > 0.0:
+                        dr = beta * pb
+                        bd.impulse[b] += dr
+                        sk.apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+                    bd.acc_p[b] = beta * pb + bd.acc_d[b]
+            for m in range(pt.cstart[parts], pt.cstart[parts + 1]):
+                contact_momentum(p, ct, pt.corder[m], beta)
+            pt.beta[None] = beta
+            pt.g2_prev[None] = g2
+        for b in range(bd.total[None]):
+            bd.acc_d[b] = bd.impulse[b]
+        ti.atomic_add(pt.released[None], 1)
+
+
+@ti.kernel
+def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                     st: ti.template(), pt: ti.template(), parts: ti.i32, max_sweeps: ti.i32,
+                     tol: float, check_every: ti.i32, accel: ti.template(),
+                     blocks: ti.template()):
+    """All sweeps of one step (see the module docstring); the items must have been listed by
+    `partition_items` for the same `parts` and `blocks`. `accel` and `blocks` as in
+    solver.nlgs_serial."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        pt.claim[None] = 0
+        pt.finished[None] = 0
+        pt.released[None] = 0
+        pt.stop[None] = 0
+        pt.beta[None] = 0.0
+        pt.g2_prev[None] = 0.0
+        pt.residual[None] = 0.0
+        for b in range(bd.total[None]):
+            bd.acc_d[b] = bd.impulse[b]
+    # one worker per part, each spread over SYSTEM_SPREAD iterations (Taichi's CPU runtime
+    # runs a loop of a few iterations on one thread: see solver.nlgs_serial)
+    for t in range(parts * SYSTEM_SPREAD):
+        if t % SYSTEM_SPREAD == 0:
+            working = 1
+            while working == 1:
+                u = ti.atomic_add(pt.claim[None], 1)
+                s = u // parts
+                k = u % parts
+                # wait for sweep s (atomic reads: never hoisted out of the loop)
+                while ti.atomic_or(pt.released[None], 0) < s and ti.atomic_or(pt.stop[None], 0) == 0:
+                    pass
+                if ti.atomic_or(pt.stop[None], 0) != 0:
+                    working = 0
+                else:
+                    if ti.static(accel == 1):
+                        if s > 0:
+                            beta = pt.beta[None]
+                            for m in range(pt.cstart[k], pt.cstart[k + 1]):
+                                contact_momentum(p, ct, pt.corder[m], beta)
+                    measure = 0
+                    if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
+                        measure = 1
+                    sweep_list(p, wl, ct, bd, pt, k, s % 2, measure, accel, blocks)
+                    if ti.atomic_add(pt.finished[None], 1) == s * parts + parts - 1:
+                        close_sweep(p, wl, ct, bd, st, pt, s, parts, max_sweeps, tol,
+                                    check_every, accel, blocks)

@@ -1,0 +1,141 @@
+"""The partitioned schedule: the serial Gauss-Seidel split over P CPU threads (tcd/partitioned.py).
+
+Its numbers must depend on P only (never on thread timing or on how many threads Taichi has),
+with one part it is the serial sweep itself, and its lists must hold every item once with the
+interior items inside their range.
+"""
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tcd import packing, walls
+from tcd.simulation import Simulation, SolverSettings
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def pour(n=150, steps=300, seed=3, diameter=0.06, **settings):
+    """A column of n binder grains (half size) poured into a cylinder (the grains reach the
+    floor and pile up within the steps)."""
+    rng = np.random.default_rng(seed)
+    r = packing.course_radii("binder", n, rng) * 0.5
+    x = packing.lattice_column(r, diameter, 0.0, rng)
+    wl = [walls.plane((0, 0, 0), (0, 0, 1)),
+          walls.cylinder((0, 0, 0), (0, 0, 1), diameter / 2, (0, 1))]
+    sim = Simulation(r, x, walls=wl, settings=SolverSettings(**settings),
+                     domain=((-0.03, -0.03, 0), (0.03, 0.03, 0.4)))
+    sweeps = [sim.step().sweeps for _ in range(steps)]
+    return sim, np.array(sweeps)
+
+
+def test_one_part_is_the_serial_gauss_seidel_bit_for_bit(precision):
+    a, sa = pour(schedule="serial")
+    b, sb = pour(schedule="partitioned", threads=1)
+    assert sa.max() > 20                      # the pour has impacts: many sweeps per step
+    assert np.array_equal(sa, sb)
+    assert np.array_equal(a.positions(), b.positions())
+    assert np.array_equal(a.velocities(), b.velocities())
+    assert np.array_equal(a.contact_arrays()["impulse"], b.contact_arrays()["impulse"])
+    a.close()
+    b.close()
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_same_parts_same_numbers_and_lists_are_sound(threads):
+    """Two runs with the same P give the same numbers (whatever the threads' timing; P = 3 is
+    more parts than this machine's cores, so units wait for a free thread); every contact is
+    listed once, an interior contact's bodies lie in its range, and the partition is used
+    (interior lists not empty)."""
+    a, sa = pour(schedule="partitioned", threads=threads)
+    b, sb = pour(schedule="partitioned", threads=threads)
+    assert np.array_equal(sa, sb)
+    assert np.array_equal(a.positions(), b.positions())
+    assert np.array_equal(a.velocities(), b.velocities())
+    pt, n = a.partition, a.n
+    part = pt.part.to_numpy()[:n]
+    assert part.min() == 0 and part.max() == threads - 1 and np.all(np.diff(part) >= 0)
+    cstart = pt.cstart.to_numpy()[: threads + 2]
+    order = pt.corder.to_numpy()[: cstart[-1]]
+    c = a.contact_arrays()
+    assert sorted(order.tolist()) == list(range(len(c["i"])))
+    for k in range(threads):
+        inside = order[cstart[k]:cstart[k + 1]]
+        assert len(inside) > 0
+        i, j = c["i"][inside], c["j"][inside]
+        assert np.all(part[i] == k) and np.all((j >= n) | (part[np.minimum(j, n - 1)] == k))
+    boundary = order[cstart[threads]:]
+    i, j = c["i"][boundary], c["j"][boundary]
+    assert np.all((j < n) & (part[i] != part[np.minimum(j, n - 1)]))
+    a.close()
+    b.close()
+
+
+def test_numbers_do_not_depend_on_the_number_of_threads(tmp_path, backend):
+    """P = 2 parts run by ONE Taichi thread (a child process) give the numbers of the same
+    P = 2 run on this machine's thread pool."""
+    arch, precision = backend
+    script = tmp_path / "one_thread.py"
+    script.write_text(textwrap.dedent(f"""
+        import json, sys
+        sys.path.insert(0, {str(ROOT)!r})
+        sys.path.insert(0, {str(ROOT / "tests")!r})
+        import tcd
+        tcd.init({arch!r}, {precision!r}, cpu_threads=1)
+        from test_partitioned import pour
+        sim, sweeps = pour(steps=150, schedule="partitioned", threads=2)
+        print(json.dumps({{"x": sim.positions().tolist(), "sweeps": sweeps.tolist()}}))
+    """))
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=600, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    child = json.loads(out.stdout.strip().splitlines()[-1])
+    sim, sweeps = pour(steps=150, schedule="partitioned", threads=2)
+    assert child["sweeps"] == sweeps.tolist()
+    assert np.array_equal(np.array(child["x"]), sim.positions())
+    sim.close()
+
+
+def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule():
+    """A bonded pile carried sideways by its moving mould, converged tightly: the partitioned
+    schedule (particle bond blocks split between the ranges and the boundary, NNCG) reaches
+    the serial schedule's velocities and bond impulses. The two converge to each other with the
+    tolerance (measured after 3 steps, largest difference over the largest value: velocities
+    2.5e-5 / 5.3e-6 / 5.1e-7 and bond impulses 8.2e-4 / 1.4e-4 / 1.4e-5 at 1e-7 / 1e-8 / 1e-9)."""
+    base, _ = pour(n=60, steps=2500, seed=5, diameter=0.025, max_sweeps=400)
+    state, r = base.state_dict(), base.radii()
+    base.close()
+    results = []
+    for schedule in ("serial", "partitioned"):
+        # the pile's own walls, the mould now moving sideways at 10 mm/s
+        wl = [walls.plane((0, 0, 0), (0, 0, 1)),
+              walls.cylinder((0, 0, 0), (0, 0, 1), 0.0125, (0, 1), motion="constant",
+                             velocity=(0.01, 0, 0))]
+        sim = Simulation(r, state["particles/x"], walls=wl,
+                         settings=SolverSettings(tolerance=1e-8, max_sweeps=200000,
+                                                 schedule=schedule, threads=2),
+                         domain=((-0.05, -0.05, 0), (0.05, 0.05, 0.2)))
+        sim.load_state_dict({**state, "walls/force": np.zeros((2, 3))})
+        assert sim.create_bonds(gap_tolerance=5e-4) > 100
+        for _ in range(3):
+            rec = sim.step()
+            assert rec.residual <= 1e-8 and rec.bonds_intact > 100
+        results.append((sim.velocities(), sim.state_dict()["bonds/impulse"]))
+        sim.close()
+    (v_s, b_s), (v_p, b_p) = results
+    assert np.abs(v_s).max() > 0.001 and np.abs(b_s).max() > 0
+    assert np.abs(v_p - v_s).max() <= 1e-4 * np.abs(v_s).max()
+    assert np.abs(b_p - b_s).max() <= 1e-3 * np.abs(b_s).max()
+
+
+def test_a_batch_refuses_the_partitioned_schedule():
+    a, _ = pour(n=20, steps=2, schedule="partitioned")
+    b, _ = pour(n=20, steps=2, seed=4, schedule="partitioned")
+    with pytest.raises(ValueError, match="partitioned schedule splits ONE system"):
+        Simulation.batch([a, b])
