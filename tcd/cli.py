@@ -211,6 +211,16 @@ def cmd_view(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    """With --json, stdout holds the JSON alone: what else is printed meanwhile (Taichi's
+    start-up lines among it) goes to stderr."""
+    import contextlib
+    with contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext():
+        result = _run_bench(args)
+    _print_result(result, args.json)
+    return 0
+
+
+def _run_bench(args) -> dict:
     from . import bench
     run = getattr(bench, args.benchmark, None)
     if run is None:
@@ -251,8 +261,7 @@ def cmd_bench(args) -> int:
         if args.time is not None:       # else the benchmark's own duration
             options["time"] = args.time
         result = median_run(run, options, args.repeat)
-    _print_result(result, args.json)
-    return 0
+    return result
 
 
 def median_run(run, options: dict, repeat: int) -> dict:

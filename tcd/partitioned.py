@@ -1,10 +1,11 @@
 """The serial Gauss-Seidel split over P CPU threads (schedule "partitioned").
 
-The particles are split into P contiguous index ranges of about equal work (in a poured sample
-the particle index follows height, so few contacts join two ranges). An item -- a contact, or a
-bond item (a particle's bond block, or a single bond) -- whose dynamic bodies all lie in range
-k is interior to k; the others are boundary items. One sweep is: the P interior lists at once
-(unit k: range k's bond items, then its contacts), then, on one thread, the boundary list
+The particles are split into P slabs of about equal work across the longest extent of their
+centres, cut anew every step (a slab boundary is crossed by a layer of items about one grain
+thick, whatever the particle numbering). An item -- a contact, or a bond item (a particle's
+bond block, or a single bond) -- whose dynamic bodies all lie in slab k is interior to k; the
+others are boundary items. One sweep is: the P interior lists at once
+(unit k: slab k's bond items, then its contacts), then, on one thread, the boundary list
 (bond items, then contacts), the convergence test and the conjugate-gradient (NNCG) momentum of
 the bonds and boundary contacts; the momentum of the interior contacts opens the next sweep's
 units. Forward and backward sweeps alternate inside every list, as in `solver.nlgs_serial`.
@@ -31,6 +32,7 @@ import taichi as ti
 
 from . import solver as sk
 from .solver import INTACT, SYSTEM_SPREAD
+from .state import SLAB_BINS
 
 
 # --- the item lists ------------------------------------------------------------------------------
@@ -49,7 +51,7 @@ def particle_work(ct: ti.template(), bd: ti.template(), q, blocks: ti.template()
 @ti.func
 def bond_item_list(p: ti.template(), bd: ti.template(), pt: ti.template(), q, parts,
                    blocks: ti.template()):
-    """List of bond item q: its range k when all its bodies lie in range k, `parts` (the
+    """List of bond item q: its slab k when all its bodies lie in slab k, `parts` (the
     boundary) otherwise, -1 when inactive (a broken bond, a particle without intact bonds)."""
     lst = -1
     if ti.static(blocks == 1):
@@ -84,12 +86,19 @@ def contact_list(p: ti.template(), ct: ti.template(), pt: ti.template(), c, part
     return lst
 
 
+@ti.func
+def slab_bin(p: ti.template(), q, axis, lo, span, bins):
+    return ti.min(bins - 1, ti.max(0, ti.cast((p.x[q][axis] - lo) / span * bins, ti.i32)))
+
+
 @ti.kernel
 def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(),
                     parts: ti.i32, blocks: ti.template()):
-    """Split the particles into `parts` index ranges of about equal work and list the items of
-    each range (bond items in `border`, CSR `bstart`; contacts in `corder`, CSR `cstart`),
-    list `parts` being the boundary. Canonical order inside every list. Serial, O(items)."""
+    """Split the particles into `parts` slabs of about equal work across the longest extent of
+    their centres (a work histogram over SLAB_BINS bins, cut at its quantiles) and list the
+    items of each slab (bond items in `border`, CSR `bstart`; contacts in `corder`, CSR
+    `cstart`), list `parts` being the boundary. Canonical order inside every list. Serial,
+    O(items + SLAB_BINS), deterministic."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         n = p.count[None]
@@ -97,16 +106,33 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
         if ti.static(blocks == 1):
             nb = n
         nc = ct.total[None]
+        lo = p.x[0]
+        hi = p.x[0]
+        for q in range(n):
+            lo = ti.min(lo, p.x[q])
+            hi = ti.max(hi, p.x[q])
+        axis = 0
+        for a in ti.static(range(1, 3)):
+            if hi[a] - lo[a] > hi[axis] - lo[axis]:
+                axis = a
+        span = ti.max(hi[axis] - lo[axis], 1e-12)
+        bins = SLAB_BINS
+        for c in range(bins):
+            pt.hist[c] = 0
         total = 0
         for q in range(n):
-            total += particle_work(ct, bd, q, blocks)
+            w = particle_work(ct, bd, q, blocks)
+            pt.hist[slab_bin(p, q, axis, lo[axis], span, bins)] += w
+            total += w
         acc = 0
-        for q in range(n):
+        for c in range(bins):
             k = 0
             if total > 0:
                 k = ti.min(parts - 1, ti.cast(ti.cast(acc, ti.f64) * parts / total, ti.i32))
-            pt.part[q] = k
-            acc += particle_work(ct, bd, q, blocks)
+            acc += pt.hist[c]
+            pt.hist[c] = k
+        for q in range(n):
+            pt.part[q] = pt.hist[slab_bin(p, q, axis, lo[axis], span, bins)]
         for c in range(parts + 2):
             pt.bstart[c] = 0
             pt.cstart[c] = 0

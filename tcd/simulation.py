@@ -177,6 +177,9 @@ class Simulation:
         self.schedule = settings.schedule
         if self.schedule == "auto":
             self.schedule = "serial" if backend.arch() == "cpu" else "coloured"
+        if self.schedule == "partitioned" and backend.arch() != "cpu":
+            raise ValueError("the partitioned schedule runs CPU threads that wait for each other; "
+                             "on the GPU use schedule = \"coloured\" (or \"auto\")")
         if self.schedule == "partitioned" and self.systems > 1:
             raise ValueError("the partitioned schedule splits ONE system over threads; a batch of "
                              f"{self.systems} systems already runs one thread per system on the "

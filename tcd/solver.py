@@ -9,8 +9,8 @@ through the body velocities. Two schedules run the same local solves:
   coloured so that one colour never shares a dynamic body (walls excepted); the items of one
   colour are solved in parallel, colour after colour, one launch per colour. For many-core
   devices (GPU).
-- "partitioned" (tcd/partitioned.py): the serial sweep split over P CPU threads (P index
-  ranges of particles, their interior items at once, then the boundary items), all sweeps in
+- "partitioned" (tcd/partitioned.py): the serial sweep split over P CPU threads (P slabs of
+  particles across the sample, their interior items at once, then the boundary items), all sweeps in
   one launch. Numbers depend on P, never on thread timing.
 Convergence: the relative change of impulses over a sweep, sum |dR| / sum |R|, checked every
 `check_every` sweeps (and at `max_sweeps`); the step stops when it is below `tolerance` or at

@@ -18,6 +18,7 @@ from . import backend
 MAX_WALLS = 64
 MAX_SYSTEMS = 64            # independent systems (samples) batched in one simulation
 MAX_PARTS = 64              # threads of the partitioned Gauss-Seidel (tcd/partitioned.py)
+SLAB_BINS = 4096            # its work histogram across the sample, cut into slabs
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
 
@@ -282,7 +283,8 @@ class ColourSet:
 class Partition:
     """Item lists of the partitioned (multi-thread) Gauss-Seidel, see tcd/partitioned.py.
 
-    part: range of each particle (0 .. parts-1). Bond items (particle blocks or bonds) in
+    part: slab of each particle (0 .. parts-1); hist: work per bin across the sample (then the
+    slab of each bin). Bond items (particle blocks or bonds) in
     `border` and contacts in `corder`, each as CSR lists over (range 0, ..., range parts-1,
     boundary): `bstart`, `cstart` (MAX_PARTS + 2 entries), canonical order inside a list.
     sums: per list (sum |dR|, sum |R|, sum |dR|^2) of the contacts in the current sweep.
@@ -292,6 +294,7 @@ class Partition:
     def __init__(self, capacity: int, particle_capacity: int):
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         self.part = _int(particle_capacity)
+        self.hist = _int(SLAB_BINS)
         self.border, self.corder = _int(capacity), _int(capacity)
         self.bstart, self.cstart = _int(MAX_PARTS + 2), _int(MAX_PARTS + 2)
         self.bcur, self.ccur = _int(MAX_PARTS + 1), _int(MAX_PARTS + 1)

@@ -45,3 +45,12 @@ def benchmark_script():
         spec.loader.exec_module(module)
         return module
     return load
+
+
+@pytest.fixture
+def schedule_on_backend(backend):
+    """check(schedule): skip a test of the CPU-only partitioned schedule on the GPU."""
+    def check(schedule):
+        if schedule == "partitioned" and backend[0] != "cpu":
+            pytest.skip("the partitioned schedule runs on the CPU")
+    return check

@@ -290,12 +290,14 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
 
 @pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
                                             ("burgers", "partitioned"), ("burgers", "coloured")])
-def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule):
+def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule,
+                                                                 schedule_on_backend):
     """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two
     bonds share the load (F J / 2 of displacement, F / 2 each: one in tension, one in
     compression). Solved bond by bond at tolerance 1e-4 this stalls far from the answer (the
     grain's two bonds are nearly dependent: h^2 K / m = 7e3); the particle-block relaxation
     solves the grain's bonds together."""
+    schedule_on_backend(schedule)
     R, r, h = 0.008, 0.001, 2e-4
     x = np.array([[0.0, 0, 0], [R + r, 0, 0], [2 * (R + r), 0, 0]])
     sim = Simulation([R, r, R], x, fixed=[True, False, True],

@@ -238,6 +238,19 @@ def test_bench_passes_keyword_options(argv, expected, stub, capsys):
     assert "seconds_per_particle_step  1.25e-06" in table and "bed.top" in table
 
 
+def test_bench_json_stdout_holds_the_json_alone(stub, capsys):
+    """Whatever is printed during the run (Taichi's start-up banner) goes to stderr, so that
+    `tcd bench ... --json | jq` works."""
+    def pour(**kwargs):
+        print("[Taichi] Starting on arch=x64")
+        return {"benchmark": "pour", "seconds_per_particle_step": 1e-5}
+    stub("bench", pour=pour)
+    assert main(["bench", "pour", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["seconds_per_particle_step"] == 1e-5
+    assert "[Taichi] Starting" in err
+
+
 def test_bench_repeat_reports_the_median_run(stub, capsys):
     figures = iter([3e-6, 1e-6, 2e-6])
     calls = []

@@ -110,7 +110,8 @@ def test_colouring_never_shares_a_dynamic_body(blocks):
 
 # --- contact mechanics ---------------------------------------------------------------------------
 @pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured"])
-def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol):
+def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol, schedule_on_backend):
+    schedule_on_backend(schedule)
     r = 0.004
     sim = Simulation([r], [[0, 0, r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
                      settings=tight(schedule=schedule), domain=((-0.01,) * 3, (0.01,) * 3))
@@ -153,8 +154,9 @@ def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
 
 
 @pytest.mark.parametrize("schedule", ["serial", "partitioned"])
-def test_vertical_column_carries_the_weight_above_each_contact(schedule, tol):
-    """(partitioned: two ranges of three spheres, the contact between them a boundary item)"""
+def test_vertical_column_carries_the_weight_above_each_contact(schedule, tol, schedule_on_backend):
+    """(partitioned: two slabs of spheres, the contact between them a boundary item)"""
+    schedule_on_backend(schedule)
     r = np.array([0.008, 0.004, 0.0056, 0.001, 0.0028, 0.008])
     z = np.cumsum(2 * r) - r
     x = np.column_stack([np.zeros(len(r)), np.zeros(len(r)), z])
