@@ -161,17 +161,6 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
 
 # --- one list of one sweep -----------------------------------------------------------------------
 @ti.func
-def contact_momentum(p: ti.template(), ct: ti.template(), c, beta):
-    """The NNCG momentum of contact c (as in solver.nlgs_serial)."""
-    pk = ct.acc_p[c]
-    if beta > 0.0 and ct.wnn[c] > 0.0:
-        dr = beta * pk
-        ct.impulse[c] += dr
-        sk.apply_impulse(p, ct.i[c], ct.j[c], ct.normal[c], dr)
-    ct.acc_p[c] = beta * pk + ct.acc_d[c]
-
-
-@ti.func
 def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                pt: ti.template(), lst, backward, measure, accel: ti.template(),
                blocks: ti.template()):
@@ -195,13 +184,12 @@ def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
         k = pt.corder[s]
         if backward == 1:
             k = pt.corder[a + b - 1 - s]
-        dr, r_new = sk.solve_contact_dr(p, wl, ct, k, n_part)
+        d2, da, ra = sk.visit_contact(p, wl, ct, k, n_part, measure, accel)
         if ti.static(accel == 1):
-            ct.acc_d[k] = dr
-            g2 += dr.dot(dr)
+            g2 += d2
         if measure == 1:
-            dsum += dr.norm()
-            rsum += r_new.norm()
+            dsum += da
+            rsum += ra
     pt.sums[lst] = ti.Vector([dsum, rsum, g2])
 
 
@@ -222,13 +210,11 @@ def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     g2 = 0.0
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
-            r_new = bd.impulse[b]
-            dr = r_new - bd.acc_d[b]
-            bd.acc_d[b] = dr
+            d2, da, ra = sk.bond_sweep_change(bd, b)
             if ti.static(accel == 1):
-                g2 += dr.dot(dr)
-            dsum += dr.norm()
-            rsum += r_new.norm()
+                g2 += d2
+            dsum += da
+            rsum += ra
     for k in range(parts + 1):
         dsum += pt.sums[k][0]
         rsum += pt.sums[k][1]
@@ -249,21 +235,11 @@ def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
         ti.atomic_add(pt.stop[None], 1)
     else:
         if ti.static(accel == 1):
-            beta = 0.0
-            if pt.g2_prev[None] > 0.0:
-                beta = g2 / pt.g2_prev[None]
-            if beta > 1.0 or sweeps == 1:
-                beta = 0.0
+            beta = sk.nncg_beta(g2, pt.g2_prev[None], sweeps)
             for b in range(bd.total[None]):
-                if bd.state[b] == INTACT:
-                    pb = bd.acc_p[b]
-                    if beta > 0.0:
-                        dr = beta * pb
-                        bd.impulse[b] += dr
-                        sk.apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
-                    bd.acc_p[b] = beta * pb + bd.acc_d[b]
+                sk.bond_momentum(p, bd, b, beta)
             for m in range(pt.cstart[parts], pt.cstart[parts + 1]):
-                contact_momentum(p, ct, pt.corder[m], beta)
+                sk.contact_momentum(p, ct, pt.corder[m], beta)
             pt.beta[None] = beta
             pt.g2_prev[None] = g2
         for b in range(bd.total[None]):
@@ -309,7 +285,7 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
                         if s > 0:
                             beta = pt.beta[None]
                             for m in range(pt.cstart[k], pt.cstart[k + 1]):
-                                contact_momentum(p, ct, pt.corder[m], beta)
+                                sk.contact_momentum(p, ct, pt.corder[m], beta)
                     measure = 0
                     if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
                         measure = 1

@@ -316,6 +316,70 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
     return dsum, rsum
 
 
+# --- pieces of a sweep shared by the serial and partitioned schedules ---------------------------
+@ti.func
+def bond_sweep_change(bd: ti.template(), b):
+    """Bond b's impulse change over the sweep, against the snapshot in acc_d (which it
+    replaces, for the momentum): (|dR|^2, |dR|, |R|)."""
+    r_new = bd.impulse[b]
+    dr = r_new - bd.acc_d[b]
+    bd.acc_d[b] = dr
+    return dr.dot(dr), dr.norm(), r_new.norm()
+
+
+@ti.func
+def visit_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part, measure,
+                  accel: ti.template()):
+    """One Gauss-Seidel visit of contact k: (|dR|^2 (NNCG only: dR kept as the search
+    direction), |dR| and |R| (only when `measure`, else 0))."""
+    dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
+    d2 = 0.0
+    da = 0.0
+    ra = 0.0
+    if ti.static(accel == 1):
+        ct.acc_d[k] = dr
+        d2 = dr.dot(dr)
+    if measure == 1:
+        da = dr.norm()
+        ra = r_new.norm()
+    return d2, da, ra
+
+
+@ti.func
+def nncg_beta(g2, g2_prev, sweeps):
+    """NNCG momentum factor |g_k|^2 / |g_k-1|^2 after `sweeps` sweeps; 0 (a restart) after the
+    first sweep or when it exceeds 1."""
+    beta = 0.0
+    if g2_prev > 0.0:
+        beta = g2 / g2_prev
+    if beta > 1.0 or sweeps == 1:
+        beta = 0.0
+    return beta
+
+
+@ti.func
+def bond_momentum(p: ti.template(), bd: ti.template(), b, beta):
+    """NNCG momentum of intact bond b: R += beta p (applied to its bodies), p = beta p + dR."""
+    if bd.state[b] == INTACT:
+        pb = bd.acc_p[b]
+        if beta > 0.0:
+            dr = beta * pb
+            bd.impulse[b] += dr
+            apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+        bd.acc_p[b] = beta * pb + bd.acc_d[b]
+
+
+@ti.func
+def contact_momentum(p: ti.template(), ct: ti.template(), k, beta):
+    """NNCG momentum of contact k (none on a pair of kinematic bodies)."""
+    pk = ct.acc_p[k]
+    if beta > 0.0 and ct.wnn[k] > 0.0:
+        dr = beta * pk
+        ct.impulse[k] += dr
+        apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
+    ct.acc_p[k] = beta * pk + ct.acc_d[k]
+
+
 # --- step kernels ------------------------------------------------------------------------------
 @ti.kernel
 def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
@@ -390,13 +454,11 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                             solve_particle_bonds(p, wl, bd, q)
                         for b in range(b0, b1):
                             if bd.state[b] == INTACT:
-                                r_new = bd.impulse[b]
-                                dr = r_new - bd.acc_d[b]
-                                bd.acc_d[b] = dr
+                                d2, da, ra = bond_sweep_change(bd, b)
                                 if ti.static(accel == 1):
-                                    g2 += dr.dot(dr)
-                                dsum += dr.norm()
-                                rsum += r_new.norm()
+                                    g2 += d2
+                                dsum += da
+                                rsum += ra
                 else:
                     for bb in range(b0, b1):
                         b = bb
@@ -412,13 +474,12 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                     k = kk
                     if backward == 1:
                         k = c1 - 1 - (kk - c0)
-                    dr, r_new = solve_contact_dr(p, wl, ct, k, n_part)
+                    d2, da, ra = visit_contact(p, wl, ct, k, n_part, measure, accel)
                     if ti.static(accel == 1):
-                        ct.acc_d[k] = dr
-                        g2 += dr.dot(dr)
+                        g2 += d2
                     if measure == 1:
-                        dsum += dr.norm()
-                        rsum += r_new.norm()
+                        dsum += da
+                        rsum += ra
                 sweeps += 1
                 if sweeps % check_every == 0 or sweeps >= max_sweeps:
                     residual = 0.0
@@ -428,26 +489,11 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                         done = 1
                 if ti.static(accel == 1):
                     if done == 0:
-                        beta = 0.0
-                        if g2_prev > 0.0:
-                            beta = g2 / g2_prev
-                        if beta > 1.0 or sweeps == 1:
-                            beta = 0.0
+                        beta = nncg_beta(g2, g2_prev, sweeps)
                         for b in range(b0, b1):
-                            if bd.state[b] == INTACT:
-                                pb = bd.acc_p[b]
-                                if beta > 0.0:
-                                    dr = beta * pb
-                                    bd.impulse[b] += dr
-                                    apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
-                                bd.acc_p[b] = beta * pb + bd.acc_d[b]
+                            bond_momentum(p, bd, b, beta)
                         for k in range(c0, c1):
-                            pk = ct.acc_p[k]
-                            if beta > 0.0 and ct.wnn[k] > 0.0:
-                                dr = beta * pk
-                                ct.impulse[k] += dr
-                                apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
-                            ct.acc_p[k] = beta * pk + ct.acc_d[k]
+                            contact_momentum(p, ct, k, beta)
                     g2_prev = g2
             st.sys_sweeps[sy] = sweeps
             st.sys_residual[sy] = residual
