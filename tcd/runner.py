@@ -43,31 +43,37 @@ def frame_of(sim) -> dict:
 
 
 class Progress:
-    """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise."""
+    """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise. The first update
+    gives the step the phase starts from (more than 0 after --resume): rates and the time left
+    count only the steps made since, so a resumed run shows its own speed."""
 
     def __init__(self, enabled: bool, label: str, total: int, h: float):
         self.enabled, self.label, self.total, self.h = enabled, label, total, h
         self.tty = enabled and sys.stderr.isatty()
         self.bar = None
+        self.first = None          # the step of the first update
         self.t0 = self.last = time.perf_counter()
         self.done = 0
-        if self.tty:
-            from tqdm import tqdm
-            self.bar = tqdm(total=total, desc=label, unit="step", dynamic_ncols=True, leave=False)
 
     def update(self, step: int, sim_time: float, extra: str = "") -> None:
         if not self.enabled:
             return
+        now = time.perf_counter()
+        if self.first is None:
+            self.first, self.done, self.t0, self.last = step, step, now, now
+            if self.tty:
+                from tqdm import tqdm
+                self.bar = tqdm(total=self.total, initial=step, desc=self.label, unit="step",
+                                dynamic_ncols=True, leave=False)
         n = step - self.done
         self.done = step
         if self.bar is not None:
             self.bar.update(n)
             self.bar.set_postfix_str(f"t={sim_time:.4f}s {extra}", refresh=False)
             return
-        now = time.perf_counter()
         if now - self.last >= 10.0:
             self.last = now
-            rate = step / max(now - self.t0, 1e-9)
+            rate = (step - self.first) / max(now - self.t0, 1e-9)
             left = (self.total - step) / rate if rate > 0 else float("nan")
             print(f"[tcd] {self.label}: step {step}/{self.total} t={sim_time:.4f} s "
                   f"{rate:.1f} steps/s, at most {left / 60:.1f} min left {extra}", file=sys.stderr, flush=True)

@@ -282,3 +282,16 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
 
     scenario, _ = micro_run
     assert cli.main(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
+
+
+def test_progress_after_a_resume_counts_only_the_new_steps(capsys, monkeypatch):
+    """A phase resumed at step 5000 of 15000 that then makes 100 steps in 10 s runs at
+    10 steps/s with 16.5 min left (not 510 steps/s and 0.3 min)."""
+    from tcd import runner
+    clock = iter([0.0, 0.0, 10.0])
+    monkeypatch.setattr(runner.time, "perf_counter", lambda: next(clock))
+    bar = runner.Progress(True, "seed 1 shear:shear", 15000, 2e-4)
+    bar.update(5000, 4.44)          # the resumed step
+    bar.update(5100, 4.46)
+    line = capsys.readouterr().err
+    assert "step 5100/15000" in line and "10.0 steps/s" in line and "16.5 min left" in line
