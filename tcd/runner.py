@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import pathlib
 import signal
 import sys
@@ -106,6 +107,15 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         if resume and path.exists():
             done[seed] = json.loads(path.read_text())
     pending = [seed for seed in scenario.seeds if seed not in done]
+    if jobs > 1 and len(pending) > 1 and scenario.solver.schedule == "partitioned":
+        threads = min(jobs, len(pending)) * scenario.solver.threads
+        cores = os.cpu_count() or 1
+        if threads > cores:
+            raise ValueError(
+                f"--jobs {jobs} with [solver] threads = {scenario.solver.threads} runs {threads} "
+                f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
+                f"each other actively and must not share cores; use --jobs "
+                f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
     if jobs > 1 and len(pending) > 1:
         import concurrent.futures
         import multiprocessing

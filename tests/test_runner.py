@@ -295,3 +295,18 @@ def test_progress_after_a_resume_counts_only_the_new_steps(capsys, monkeypatch):
     bar.update(5100, 4.46)
     line = capsys.readouterr().err
     assert "step 5100/15000" in line and "10.0 steps/s" in line and "16.5 min left" in line
+
+
+def test_jobs_that_would_share_cores_between_partitioned_threads_are_refused(tmp_path, monkeypatch):
+    """Two samples at once, two partitioned threads each, on two cores: refused before anything
+    runs or is written, with the way out named."""
+    from tcd import runner
+    from tcd.config import parse_scenario
+    text = (ROOT / "scenarios" / "tiny.toml").read_text()
+    text = text.replace("seeds = [1]", "seeds = [1, 2]").replace(
+        "[solver]\n", '[solver]\nschedule = "partitioned"\nthreads = 2\n', 1)
+    scn = parse_scenario(text, "tiny-partitioned")
+    monkeypatch.setattr(runner.os, "cpu_count", lambda: 2)
+    with pytest.raises(ValueError, match=r"4 solver threads on 2 cores.*use --jobs 1"):
+        runner.run_scenario(scn, tmp_path / "out", jobs=2, progress=False)
+    assert not any((tmp_path / "out").glob("sample_*"))
