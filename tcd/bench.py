@@ -234,7 +234,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
                      "memory_bytes_per_particle": sim.memory_bytes() / n,
                      "timed_steps": steps - 1, "loop_wall_s": loop_s, "pour_wall_s": pre_s})
         sim.close()
-        _write_scaling(rows, out, arch, precision)
+        _write_scaling(rows, out, arch, precision, schedule, threads)
         if progress is not None:
             progress(rows[-1])
     base = pathlib.Path(out)
@@ -242,7 +242,8 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
             "csv": str(base.with_suffix(".csv")), "plot": str(base.with_suffix(".png"))}
 
 
-def _write_scaling(rows: list, out: str, arch: str, precision: str) -> None:
+def _write_scaling(rows: list, out: str, arch: str, precision: str, schedule: str = "auto",
+                   threads: int = 2) -> None:
     """The scan so far as CSV and log-log plot (both replaced atomically)."""
     import csv
     from . import io
@@ -257,7 +258,8 @@ def _write_scaling(rows: list, out: str, arch: str, precision: str) -> None:
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.loglog([r["particles"] for r in rows], [r["seconds_per_particle_step"] for r in rows], "o-",
-              label=f"tcd ({arch}, {precision})")
+              label=f"tcd ({arch}, {precision}, "
+              + (f"partitioned on {threads} threads)" if schedule == "partitioned" else f"{schedule})"))
     ax.loglog([r["particles"] for r in rows], [r["seconds_per_contact_sweep"] * 1e3 for r in rows], "s--",
               label="s per contact update x 1e3")
     ax.set_xlabel("particles N")
