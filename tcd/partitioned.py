@@ -49,7 +49,7 @@ def particle_work(ct: ti.template(), bd: ti.template(), q, blocks: ti.template()
 
 
 @ti.func
-def bond_item_list(p: ti.template(), bd: ti.template(), pt: ti.template(), q, parts,
+def bond_item_list(bd: ti.template(), pt: ti.template(), q, parts,
                    blocks: ti.template()):
     """List of bond item q: its slab k when all its bodies lie in slab k, `parts` (the
     boundary) otherwise, -1 when inactive (a broken bond, a particle without intact bonds)."""
@@ -137,7 +137,7 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
             pt.bstart[c] = 0
             pt.cstart[c] = 0
         for q in range(nb):
-            lst = bond_item_list(p, bd, pt, q, parts, blocks)
+            lst = bond_item_list(bd, pt, q, parts, blocks)
             if lst >= 0:
                 pt.bstart[lst + 1] += 1
         for c in range(nc):
@@ -149,7 +149,7 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
             pt.bcur[c] = pt.bstart[c]
             pt.ccur[c] = pt.cstart[c]
         for q in range(nb):
-            lst = bond_item_list(p, bd, pt, q, parts, blocks)
+            lst = bond_item_list(bd, pt, q, parts, blocks)
             if lst >= 0:
                 pt.border[pt.bcur[lst]] = q
                 pt.bcur[lst] += 1

@@ -97,9 +97,6 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     if resume:
         if not out.is_dir() or not any(out.glob("sample_*/checkpoint.h5")) and not any(out.glob("sample_*/summary.json")):
             raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
-    out.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(out / "scenario.toml") as tmp:
-        pathlib.Path(tmp).write_text(scenario.text)
     t_start = time.perf_counter()
     done = {}
     for seed in scenario.seeds:
@@ -116,6 +113,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
                 f"each other actively and must not share cores; use --jobs "
                 f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
+    out.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(out / "scenario.toml") as tmp:
+        pathlib.Path(tmp).write_text(scenario.text)
     if jobs > 1 and len(pending) > 1:
         import concurrent.futures
         import multiprocessing

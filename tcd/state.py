@@ -284,9 +284,9 @@ class Partition:
     """Item lists of the partitioned (multi-thread) Gauss-Seidel, see tcd/partitioned.py.
 
     part: slab of each particle (0 .. parts-1); hist: work per bin across the sample (then the
-    slab of each bin). Bond items (particle blocks or bonds) in
-    `border` and contacts in `corder`, each as CSR lists over (range 0, ..., range parts-1,
-    boundary): `bstart`, `cstart` (MAX_PARTS + 2 entries), canonical order inside a list.
+    slab of each bin). Bond items (particle blocks or bonds) in `border` and contacts in
+    `corder`, each as CSR lists over (slab 0, ..., slab parts-1, boundary): `bstart`, `cstart`
+    (MAX_PARTS + 2 entries; `bcur`, `ccur` their fill cursors), canonical order in a list.
     sums: per list (sum |dR|, sum |R|, sum |dR|^2) of the contacts in the current sweep.
     claim, finished, released, stop: the workers' counters; beta, g2_prev, residual: the NNCG
     momentum and the last measured residual, shared between the workers."""

@@ -309,4 +309,4 @@ def test_jobs_that_would_share_cores_between_partitioned_threads_are_refused(tmp
     monkeypatch.setattr(runner.os, "cpu_count", lambda: 2)
     with pytest.raises(ValueError, match=r"4 solver threads on 2 cores.*use --jobs 1"):
         runner.run_scenario(scn, tmp_path / "out", jobs=2, progress=False)
-    assert not any((tmp_path / "out").glob("sample_*"))
+    assert not (tmp_path / "out").exists()
