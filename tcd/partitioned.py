@@ -173,7 +173,7 @@ def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
         if backward == 1:
             q = pt.border[a + b - 1 - s]
         if ti.static(blocks == 1):
-            sk.solve_particle_bonds(p, wl, bd, q)
+            sk.solve_particle_bonds(p, wl, bd, q, 0)
         else:
             sk.solve_bond_dr(p, wl, bd, q)
     dsum = 0.0

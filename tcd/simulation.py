@@ -333,6 +333,8 @@ class Simulation:
                     law.kelvin_viscosity, law.tangent_factor)
         if bd.total[None] > 0:
             sk.bonds_prepare(p, bd, h, theta, t_end, *law_args)
+            if s.bond_blocks:
+                sk.bonds_factor(p, bd)
         ck.contact_geometry(p, wl, ct, h, theta, self.friction)
         sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":

@@ -137,10 +137,12 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
         ut = u - un * n
         rn_old = r_old.dot(n)
         rt_old = r_old - rn_old * n
-        ufn = un - bd.wnn[b] * rn_old
-        uft = ut - bd.wtt[b] * rt_old
-        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], bd.wnn[b], bd.wtt[b],
-                             bd.cn[b], bd.ct[b])
+        ri, rj = p.radius[i], p.radius[j]
+        wnn = p.inv_mass[i] + p.inv_mass[j]
+        wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
+        ufn = un - wnn * rn_old
+        uft = ut - wtt * rt_old
+        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
         r_new = rn * n + rt
         dr = r_new - r_old
         apply_impulse(p, i, j, n, dr)
@@ -164,9 +166,15 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
 # q receives the impulses Q_b (bond b's impulse changes by s Q_b), each neighbour its -Q_b.
 # The residuals read before any update stay valid while the block is applied (q moves last,
 # each neighbour belongs to one bond).
+# Per step (bonds_factor, after bonds_prepare) the parts that do not change over the sweeps
+# are computed once: K_b = beta I + (alpha - beta) n n^T (alpha = 1 / (cn + m_o^-1), beta =
+# 1 / (ct + m_o^-1 + r_o^2 I_o^-1)) as (alpha, beta) per bond end, and the inverse of each
+# particle's block matrix (21 entries of a symmetric 6 x 6). A sweep then pays per bond end
+# one relative velocity and a few vector operations, and per particle one 6 x 6 product.
 @ti.func
-def cholesky_solve6(a, g):
-    """x with a x = g for a symmetric positive definite 6 x 6 matrix (unrolled)."""
+def cholesky_inverse6(a):
+    """Inverse of a symmetric positive definite 6 x 6 matrix through its Cholesky factor
+    (unrolled; columns of the identity substituted forward and back)."""
     lo = ti.Matrix.zero(float, 6, 6)
     for r in ti.static(range(6)):
         for c in ti.static(range(r + 1)):
@@ -177,49 +185,59 @@ def cholesky_solve6(a, g):
                 lo[r, r] = ti.sqrt(ti.max(acc, 1e-30))
             else:
                 lo[r, c] = acc / lo[c, c]
-    y = ti.Vector.zero(float, 6)
-    for r in ti.static(range(6)):
-        acc = g[r]
-        for k in ti.static(range(r)):
-            acc -= lo[r, k] * y[k]
-        y[r] = acc / lo[r, r]
-    x = ti.Vector.zero(float, 6)
-    for rr in ti.static(range(6)):
-        r = ti.static(5 - rr)
-        acc = y[r]
-        for k in ti.static(range(r + 1, 6)):
-            acc -= lo[k, r] * x[k]
-        x[r] = acc / lo[r, r]
-    return x
+    inv = ti.Matrix.zero(float, 6, 6)
+    for col in ti.static(range(6)):
+        y = ti.Vector.zero(float, 6)
+        for r in ti.static(range(6)):
+            acc = 1.0 if ti.static(r == col) else 0.0
+            for k in ti.static(range(r)):
+                acc -= lo[r, k] * y[k]
+            y[r] = acc / lo[r, r]
+        for rr in ti.static(range(6)):
+            r = ti.static(5 - rr)
+            acc = y[r]
+            for k in ti.static(range(r + 1, 6)):
+                acc -= lo[k, r] * inv[k, col]
+            inv[r, col] = acc / lo[r, r]
+    return inv
+
+
+# the 21 entries of a symmetric 6 x 6 matrix (lower triangle, row by row), as kept in
+# Particles.bond_inverse
+TRI6 = [(r, c) for r in range(6) for c in range(r + 1)]
 
 
 @ti.func
-def skew(a):
-    return ti.Matrix([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+def stiffness_apply(alpha, beta, n, x):
+    """K x for K = beta I + (alpha - beta) n n^T."""
+    return beta * x + ((alpha - beta) * n.dot(x)) * n
 
 
 @ti.func
-def bond_block_terms(p: ti.template(), wl: ti.template(), bd: ti.template(), b, q):
-    """Bond b seen from q: sign s, unit offset -s n, stiffness K = (C + W_o)^-1 (3 x 3),
-    residual e, and the neighbour o."""
-    i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+def bond_end(bd: ti.template(), b, q):
+    """Bond b seen from its end q: sign s (+1 when q is its j), neighbour o, and the step's
+    stiffness coefficients (alpha, beta) of K_b = (C_b + W_o)^-1."""
     s = 1.0
-    if q == i:
+    o = bd.i[b]
+    k4 = bd.stiff[b]
+    alpha, beta = k4[2], k4[3]
+    if q == bd.i[b]:
         s = -1.0
+        o = bd.j[b]
+        alpha, beta = k4[0], k4[1]
+    return s, o, alpha, beta
+
+
+@ti.func
+def bond_residual(p: ti.template(), wl: ti.template(), bd: ti.template(), b, s):
+    """Residual e = s (u + C R + rhs) of bond b seen from the end with sign s, at the current
+    velocities and impulse."""
+    i, j, n = bd.i[b], bd.j[b], bd.normal[b]
     r_imp = bd.impulse[b]
     rn = r_imp.dot(n)
     u = relative_velocity(p, wl, i, j, n)
     res = u + bd.cn[b] * rn * n + bd.ct[b] * (r_imp - rn * n) + bd.rhs_n[b] * n + bd.rhs_t[b]
-    nn = n.outer_product(n)
-    eye = ti.Matrix([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    # the neighbour is free too: its contact-point mobility adds to the bond's compliance
-    o = j
-    if q == j:
-        o = i
-    ro = p.radius[o]
-    kb = (nn / (bd.cn[b] + p.inv_mass[o])
-          + (eye - nn) / (bd.ct[b] + p.inv_mass[o] + ro * ro * p.inv_inertia[o]))
-    return s, -s * n, kb, s * res, o
+    return s * res
 
 
 @ti.func
@@ -239,15 +257,112 @@ def particle_bond(bd: ti.template(), q, k):
 
 
 @ti.func
-def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(), q):
+def held_unknown(p: ti.template(), q, r: ti.template()):
+    """1 when unknown r (0-2 velocity, 3-5 rotation) of particle q is held (infinite mass or
+    inertia): its block row is the identity, its right side zero."""
+    held = 0
+    if ti.static(r < 3):
+        if p.inv_mass[q] == 0.0:
+            held = 1
+    else:
+        if p.inv_inertia[q] == 0.0:
+            held = 1
+    return held
+
+
+@ti.kernel
+def bonds_factor(p: ti.template(), bd: ti.template()):
+    """Per step, after bonds_prepare: (alpha, beta) of each intact bond's ends (Bonds.stiff)
+    and the inverse block matrix M' + sum G_b^T K_b G_b of each particle with intact bonds
+    (Particles.bond_inverse; held unknowns get identity rows and columns)."""
+    for b in range(bd.total[None]):
+        if bd.state[b] == INTACT:
+            i, j = bd.i[b], bd.j[b]
+            ri, rj = p.radius[i], p.radius[j]
+            # seen from i the neighbour is j, and the other way round
+            bd.stiff[b] = ti.Vector([
+                1.0 / (bd.cn[b] + p.inv_mass[j]),
+                1.0 / (bd.ct[b] + p.inv_mass[j] + rj * rj * p.inv_inertia[j]),
+                1.0 / (bd.cn[b] + p.inv_mass[i]),
+                1.0 / (bd.ct[b] + p.inv_mass[i] + ri * ri * p.inv_inertia[i])])
+    for q in range(p.count[None]):
+        rq = p.radius[q]
+        a = ti.Matrix.zero(float, 6, 6)
+        count = 0
+        for k in range(particle_bond_count(bd, q)):
+            b = particle_bond(bd, q, k)
+            if bd.state[b] == INTACT:
+                count += 1
+                n = bd.normal[b]
+                s = 1.0
+                o = bd.i[b]
+                if q == bd.i[b]:
+                    s = -1.0
+                    o = bd.j[b]
+                ro = p.radius[o]
+                alpha = 1.0 / (bd.cn[b] + p.inv_mass[o])
+                beta = 1.0 / (bd.ct[b] + p.inv_mass[o] + ro * ro * p.inv_inertia[o])
+                kb = (alpha - beta) * n.outer_product(n)
+                for r in ti.static(range(3)):
+                    kb[r, r] += beta
+                sk_ = skew(-s * n)
+                ks = kb @ sk_
+                sks = sk_.transpose() @ ks
+                for r in ti.static(range(3)):
+                    for c in ti.static(range(3)):
+                        a[r, c] += kb[r, c]
+                        a[r, 3 + c] -= ks[r, c]
+                        a[3 + c, r] -= ks[r, c]
+                        a[3 + r, 3 + c] += sks[r, c]
+        if count > 0:
+            if p.inv_mass[q] > 0.0:
+                for r in ti.static(range(3)):
+                    a[r, r] += 1.0 / p.inv_mass[q]
+            if p.inv_inertia[q] > 0.0:
+                for r in ti.static(range(3)):
+                    a[3 + r, 3 + r] += 1.0 / (p.inv_inertia[q] * rq * rq)
+            for r in ti.static(range(6)):
+                if held_unknown(p, q, r) == 1:
+                    for c in ti.static(range(6)):
+                        a[r, c] = 0.0
+                        a[c, r] = 0.0
+                    a[r, r] = 1.0
+            inv = cholesky_inverse6(a)
+            f = ti.Vector.zero(float, 21)
+            for e in ti.static(range(21)):
+                f[e] = inv[TRI6[e][0], TRI6[e][1]]
+            p.bond_inverse[q] = f
+
+
+@ti.func
+def skew(a):
+    return ti.Matrix([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+@ti.func
+def block_inverse_apply(p: ti.template(), q, g):
+    """xi = A^-1 g with particle q's stored symmetric block inverse."""
+    f = p.bond_inverse[q]
+    xi = ti.Vector.zero(float, 6)
+    for e in ti.static(range(21)):
+        r, c = ti.static(TRI6[e][0], TRI6[e][1])
+        xi[r] += f[e] * g[c]
+        if ti.static(r != c):
+            xi[c] += f[e] * g[r]
+    return xi
+
+
+@ti.func
+def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(), q,
+                         measure: ti.template()):
     """Exact solve of the intact bonds of particle q (the star of q and its bonded
-    neighbours, see above). A fixed particle (or locked rotation) keeps those unknowns at
-    zero: its bonds are then solved one by one. Returns (sum |dR_b|, sum |R_b|) over its
-    intact bonds, for the coloured schedule's residual."""
+    neighbours, see above) with the step's stiffnesses and block inverse (bonds_factor). A
+    fixed particle (or locked rotation) keeps those unknowns at zero: its bonds are then solved
+    one by one. Returns (sum |dR_b|, sum |R_b|) over its intact bonds when `measure` (static)
+    is 1 (the coloured schedule's residual), else zeros."""
     rq = p.radius[q]
     dsum = 0.0
     rsum = 0.0
-    a = ti.Matrix.zero(float, 6, 6)
     g = ti.Vector.zero(float, 6)
     count = 0
     nq = particle_bond_count(bd, q)
@@ -255,43 +370,22 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         b = particle_bond(bd, q, k)
         if bd.state[b] == INTACT:
             count += 1
-            s, ahat, kb, e, _ = bond_block_terms(p, wl, bd, b, q)
-            sk_ = skew(ahat)
-            ke = kb @ e
-            ks = kb @ sk_
-            ske = ahat.cross(ke)
-            sks = sk_.transpose() @ ks
+            s, _, alpha, beta = bond_end(bd, b, q)
+            n = bd.normal[b]
+            e = bond_residual(p, wl, bd, b, s)
+            bd.resid[b] = e
+            ke = stiffness_apply(alpha, beta, n, e)
+            # G_b^T K_b e_b: the force K e and its moment about q's centre, a x K e with the
+            # unit offset a = -s n
+            ske = -s * n.cross(ke)
             for r in ti.static(range(3)):
                 g[r] -= ke[r]
                 g[3 + r] -= ske[r]
-                for c in ti.static(range(3)):
-                    a[r, c] += kb[r, c]
-                    a[r, 3 + c] -= ks[r, c]
-                    a[3 + c, r] -= ks[r, c]
-                    a[3 + r, 3 + c] += sks[r, c]
     if count > 0:
-        if p.inv_mass[q] > 0.0:
-            for r in ti.static(range(3)):
-                a[r, r] += 1.0 / p.inv_mass[q]
-        if p.inv_inertia[q] > 0.0:
-            for r in ti.static(range(3)):
-                a[3 + r, 3 + r] += 1.0 / (p.inv_inertia[q] * rq * rq)
-        # held unknowns: their rows and columns become the identity, their right side zero
         for r in ti.static(range(6)):
-            held = 0
-            if ti.static(r < 3):
-                if p.inv_mass[q] == 0.0:
-                    held = 1
-            else:
-                if p.inv_inertia[q] == 0.0:
-                    held = 1
-            if held == 1:
+            if held_unknown(p, q, r) == 1:
                 g[r] = 0.0
-                for c in ti.static(range(6)):
-                    a[r, c] = 0.0
-                    a[c, r] = 0.0
-                a[r, r] = 1.0
-        xi = cholesky_solve6(a, g)
+        xi = block_inverse_apply(p, q, g)
         dv = ti.Vector([xi[0], xi[1], xi[2]])
         dw = ti.Vector([xi[3], xi[4], xi[5]])
         sum_q = ti.Vector([0.0, 0.0, 0.0])
@@ -299,16 +393,20 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         for k in range(nq):
             b = particle_bond(bd, q, k)
             if bd.state[b] == INTACT:
-                s, ahat, kb, e, o = bond_block_terms(p, wl, bd, b, q)
-                qb = -(kb @ (e + dv - ahat.cross(dw)))
+                s, o, alpha, beta = bond_end(bd, b, q)
+                n = bd.normal[b]
+                e = bd.resid[b]
+                # e + G_b xi = e + dv - a x dw with a = -s n
+                qb = -stiffness_apply(alpha, beta, n, e + dv + s * n.cross(dw))
                 bd.impulse[b] += s * qb
-                dsum += qb.norm()
-                rsum += bd.impulse[b].norm()
+                if ti.static(measure == 1):
+                    dsum += qb.norm()
+                    rsum += bd.impulse[b].norm()
                 sum_q += qb
-                sum_t += ahat.cross(qb)
+                sum_t -= s * n.cross(qb)
                 # the neighbour receives -Q_b at its contact point s r_o n
                 # (-r_j n when it is j, +r_i n when it is i)
-                ro = s * p.radius[o] * bd.normal[b]
+                ro = s * p.radius[o] * n
                 p.v[o] = p.v[o] - qb * p.inv_mass[o]
                 p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
         p.v[q] = p.v[q] + sum_q * p.inv_mass[q]
@@ -451,7 +549,7 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                             q = qq
                             if backward == 1:
                                 q = q1 - 1 - (qq - q0)
-                            solve_particle_bonds(p, wl, bd, q)
+                            solve_particle_bonds(p, wl, bd, q, 0)
                         for b in range(b0, b1):
                             if bd.state[b] == INTACT:
                                 d2, da, ra = bond_sweep_change(bd, b)
@@ -644,7 +742,7 @@ def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.
         ra = 0.0
         if q < nb:
             if ti.static(blocks == 1):
-                da, ra = solve_particle_bonds(p, wl, bd, q)
+                da, ra = solve_particle_bonds(p, wl, bd, q, 1)
             else:
                 da, ra = solve_bond(p, wl, bd, q)
         else:
@@ -706,8 +804,6 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             bd.ct[b] = comp_t / (theta * h * h)
             bd.rhs_n[b] = (dn_beg - off_n) / (theta * h)
             bd.rhs_t[b] = (dt_beg - off_t) / (theta * h)
-            bd.wnn[b] = p.inv_mass[i] + p.inv_mass[j]
-            bd.wtt[b] = p.inv_mass[i] + p.inv_mass[j] + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
 
 
 @ti.func

@@ -126,6 +126,9 @@ class Particles:
         self.x = _vec(c)
         self.v_old, self.w_old, self.f_ext = _vec(c), _vec(c), _vec(c)
         self.layer = _int(c)
+        # per step: inverse of the particle's bond block (solver.bonds_factor), the 21 entries
+        # of its lower triangle
+        self.bond_inverse = ti.Vector.field(21, backend.real(), shape=c)
         # batched systems: particle i belongs to system[i]; system s holds the contiguous
         # particles sys_start[s] .. sys_start[s + 1] - 1 (one system: all of them)
         self.system = _int(c)
@@ -234,18 +237,25 @@ class Bonds:
     Burgers history (normal: hd_n dashpot, hk_n Kelvin; tangential: hd_t, hk_t, m),
     broken_time (s, NaN while intact), broken_pos (m).
     Per step: normal, rhs_n, rhs_t (displacement terms / (theta H)), cn, ct (extra compliance
-    1/(theta H^2 K)), wnn, wtt, d_t_beg."""
+    1/(theta H^2 K)), d_t_beg; stiff and resid (the particle-block relaxation's)."""
 
     def __init__(self, capacity: int, particle_capacity: int):
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         c = capacity
-        self.i, self.j, self.state = _int(c), _int(c), _int(c)
+        # the particle-block relaxation's per-bond record (AoS), read whole at every visit
+        (self.i, self.j, self.state, self.normal, self.impulse, self.cn, self.ct, self.rhs_n,
+         self.rhs_t, self.stiff, self.resid) = _struct(
+            c, ti.field(ti.i32), ti.field(ti.i32), ti.field(ti.i32), _vec_row(), _vec_row(),
+            _real_row(), _real_row(), _real_row(), _vec_row(),
+            ti.Vector.field(4, backend.real()), _vec_row())
+        # stiff: per step, (alpha, beta) of K = (C + W_o)^-1 seen from i, then from j
+        # (solver.bonds_factor); resid: per sweep, the bond's residual seen from the particle
+        # being relaxed
         self.g0, self.created, self.area = _real(c), _real(c), _real(c)
-        self.impulse, self.d_t, self.hd_t, self.hk_t = _vec(c), _vec(c), _vec(c), _vec(c)
+        self.d_t, self.hd_t, self.hk_t = _vec(c), _vec(c), _vec(c)
         self.hd_n, self.hk_n = _real(c), _real(c)
         self.broken_time, self.broken_pos = _real(c), _vec(c)
-        self.normal, self.rhs_t, self.d_t_beg = _vec(c), _vec(c), _vec(c)
-        self.rhs_n, self.cn, self.ct, self.wnn, self.wtt = _real(c), _real(c), _real(c), _real(c), _real(c)
+        self.d_t_beg = _vec(c)
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.start = _int(particle_capacity + 1)
         # bonds whose second particle is p: rev[rev_start[p]:rev_start[p + 1]] (the bonds of
