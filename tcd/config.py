@@ -107,7 +107,10 @@ class SolverConfig(_Model):
     overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
     position projection leaves contacts alone; projection_passes: its sweeps (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
-    (true, the default; false: bond by bond, which stalls on the bonds of light grains)."""
+    (true, the default; false: bond by bond, which stalls on the bonds of light grains);
+    neighbour_skin: skin of the broad phase's neighbour list / smallest radius (cost only:
+    the contacts are the same for any skin; 0: room for about three steps of the fastest
+    grain's reach only)."""
     time_step: float = Field(2e-4, gt=0)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)
@@ -121,6 +124,7 @@ class SolverConfig(_Model):
     overlap_slop: float = Field(0.002, ge=0)
     projection_passes: int = Field(2, ge=0)
     bond_blocks: bool = True
+    neighbour_skin: float = Field(2.0, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> "SolverConfig":
@@ -139,7 +143,8 @@ class SolverConfig(_Model):
                               acceleration=self.acceleration, alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,
-                              bond_blocks=self.bond_blocks)
+                              bond_blocks=self.bond_blocks,
+                              neighbour_skin=self.neighbour_skin)
 
 
 class MaterialConfig(_Model):

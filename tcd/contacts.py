@@ -15,15 +15,20 @@ are numbered after those of systems 0..s-1 (a virtual grid per system), so two s
 meet in the broad phase even when they occupy the same space, and a wall tagged with a system
 only touches that system's particles.
 
-Contact building is two-pass per particle (count, scan, fill), then each particle's partner list
-is sorted, which makes the contact order canonical (i ascending, j ascending, walls last) and
-independent of thread scheduling. Warm start: each contact looks up its pair in the previous
+Neighbour list (Verlet list): the grid is only walked to build, per particle, the list of
+partners j > i within the alert distance plus a skin, sorted ascending (two passes: count, scan,
+fill), with the positions it was built at. Every step the contacts are picked from it; it is
+rebuilt when a particle's motion since the build plus its reach over the step could close the
+skin (twice the largest such distance above the skin), so it always holds every pair that may
+touch by the end of the step, and the contacts are exactly those a grid walk would find.
+Contact building is two-pass per particle (count, scan, fill) over its list, which makes the
+contact order canonical (i ascending, j ascending, walls last) and independent of thread
+scheduling. Warm start: each contact looks up its pair in the previous
 step's CSR list and starts from that impulse.
 """
 
 import taichi as ti
 
-from .state import Bonds, Contacts, Grid, Particles, WallFields
 
 PLANE, CYLINDER = 0, 1
 
@@ -69,20 +74,21 @@ def reach(p: ti.template(), i, h):
 
 
 @ti.func
-def box_cells(g: ti.template(), p: ti.template(), i, half_alert, h):
-    e = p.radius[i] + half_alert + reach(p, i, h)
+def box_cells(g: ti.template(), p: ti.template(), i, half_reach):
+    """Cells of sphere i's bounding box enlarged by `half_reach` (half the alert distance
+    plus half the neighbour list's skin)."""
+    e = p.radius[i] + half_reach
     return cell_of(g, p.x[i] - e), cell_of(g, p.x[i] + e)
 
 
 @ti.kernel
-def grid_walk(p: ti.template(), g: ti.template(), half_alert: float, h: float,
-              scatter: ti.template()):
+def grid_walk(p: ti.template(), g: ti.template(), half_reach: float, scatter: ti.template()):
     """One walk of every particle's cells: per-bucket counts of the incidences (`scatter`
     False), or (True, after grid_scan) each incidence written at its bucket's slots."""
     for c in range(g.buckets[None]):
         g.cell_count[c] = 0
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert, h)
+        lo, hi = box_cells(g, p, i, half_reach)
         offset = system_cells(g, p, i)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -95,12 +101,12 @@ def grid_walk(p: ti.template(), g: ti.template(), half_alert: float, h: float,
                         g.keys[g.cell_start[b] + slot] = c
 
 
-def grid_count(p, g, half_alert: float, h: float) -> None:
-    grid_walk(p, g, half_alert, h, False)
+def grid_count(p, g, half_reach: float) -> None:
+    grid_walk(p, g, half_reach, False)
 
 
-def grid_scatter(p, g, half_alert: float, h: float) -> None:
-    grid_walk(p, g, half_alert, h, True)
+def grid_scatter(p, g, half_reach: float) -> None:
+    grid_walk(p, g, half_reach, True)
 
 
 @ti.kernel
@@ -155,33 +161,23 @@ def bonded_intact(bd: ti.template(), i, j):
 
 
 @ti.func
-def candidate(p: ti.template(), g: ti.template(), bd: ti.template(), i, j, c, lo_i, half_alert,
-              alert, h):
-    """1 if pair (i, j) is seen from cell c for the first time and may be in contact by the end
-    of the step (gap below the alert distance plus both reaches)."""
-    ok = 0
-    lo_j, hi_j = box_cells(g, p, j, half_alert, h)
-    first = ti.max(lo_i, lo_j)
-    if first[0] == c[0] and first[1] == c[1] and first[2] == c[2]:
-        gap = (p.x[j] - p.x[i]).norm() - p.radius[i] - p.radius[j]
-        if gap < alert + reach(p, i, h) + reach(p, j, h):
-            if bonded_intact(bd, i, j) == 0:
-                ok = 1
-    return ok
+def pair_gap(p: ti.template(), i, j):
+    return (p.x[j] - p.x[i]).norm() - p.radius[i] - p.radius[j]
 
 
 @ti.kernel
-def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.template(),
-                 ct: ti.template(), half_alert: float, alert: float, h: float,
-                 fill: ti.template()):
-    """One walk of the cells around each particle: counts its candidate partners
-    (`fill` False, into ct.count) or writes them at ct.start (`fill` True) in canonical order:
-    particle partners ascending, then walls."""
+def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_reach: float,
+                   fill: ti.template()):
+    """The neighbour list: every pair (i, j), j > i, with a gap below 2 half_reach (the
+    alert distance plus the skin), found from the first cell their enlarged boxes share.
+    One walk of the cells around each particle counts its neighbours (`fill` False, into
+    nb.count) or writes them at nb.start (`fill` True) in ascending order, and keeps the
+    positions the list was built at (nb.x_ref)."""
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_alert, h)
+        lo, hi = box_cells(g, p, i, half_reach)
         base = 0
         if ti.static(fill):
-            base = ct.start[i]
+            base = nb.start[i]
         m = 0
         offset = system_cells(g, p, i)
         for cx in range(lo[0], hi[0] + 1):
@@ -193,22 +189,65 @@ def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
                     for s in range(g.cell_start[b], g.cell_start[b] + g.cell_count[b]):
                         j = g.items[s]
                         if j > i and g.keys[s] == ci:
-                            if candidate(p, g, bd, i, j, c, lo, half_alert, alert, h) == 1:
-                                if ti.static(fill):
-                                    ct.j[base + m] = j
-                                m += 1
+                            lo_j, hi_j = box_cells(g, p, j, half_reach)
+                            first = ti.max(lo, lo_j)
+                            if first[0] == c[0] and first[1] == c[1] and first[2] == c[2]:
+                                if pair_gap(p, i, j) < 2.0 * half_reach:
+                                    if ti.static(fill):
+                                        nb.j[base + m] = j
+                                    m += 1
         if ti.static(fill):
-            # insertion sort of the particle partners: canonical order whatever the cell order
+            # insertion sort: ascending partners whatever the cell order
             for a in range(1, m):
-                key = ct.j[base + a]
+                key = nb.j[base + a]
                 b = a - 1
-                while b >= 0 and ct.j[base + b] > key:
-                    ct.j[base + b + 1] = ct.j[base + b]
+                while b >= 0 and nb.j[base + b] > key:
+                    nb.j[base + b + 1] = nb.j[base + b]
                     b -= 1
-                ct.j[base + b + 1] = key
+                nb.j[base + b + 1] = key
+            nb.x_ref[i] = p.x[i]
+        else:
+            nb.count[i] = m
+
+
+@ti.kernel
+def neighbour_motion(p: ti.template(), nb: ti.template(), h: float, moved: ti.template()) -> float:
+    """max over the particles of (distance moved since the list was built + reach over the
+    coming step): the list holds every pair that may touch by the end of the step while
+    twice this stays below its skin. `moved` False: the largest reach alone."""
+    nb.motion[None] = 0.0
+    for i in range(p.count[None]):
+        m = reach(p, i, h)
+        if ti.static(moved):
+            m += (p.x[i] - nb.x_ref[i]).norm()
+        ti.atomic_max(nb.motion[None], m)
+    return nb.motion[None]
+
+
+@ti.kernel
+def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
+                 ct: ti.template(), alert: float, h: float, fill: ti.template()):
+    """Each particle's contact candidates from its neighbour list: partners j whose gap is
+    below the alert distance plus both reaches (may touch by the end of the step) and not
+    held by an intact bond, then the walls within reach. Counts them (`fill` False, into
+    ct.count) or writes them at ct.start (`fill` True) in canonical order: particle partners
+    ascending (the list's order), then walls."""
+    for i in range(p.count[None]):
+        base = 0
+        if ti.static(fill):
+            base = ct.start[i]
+        m = 0
+        reach_i = reach(p, i, h)
+        for s in range(nb.start[i], nb.start[i + 1]):
+            j = nb.j[s]
+            if pair_gap(p, i, j) < alert + reach_i + reach(p, j, h):
+                if bonded_intact(bd, i, j) == 0:
+                    if ti.static(fill):
+                        ct.j[base + m] = j
+                    m += 1
         for k in range(wl.count[None]):
             gap, n, valid = wall_geometry(wl, k, p.x[i], p.radius[i])
-            if valid == 1 and touches(wl, p, k, i) and gap < alert + reach(p, i, h) + h * wl.velocity[k].norm():
+            if valid == 1 and touches(wl, p, k, i) and gap < alert + reach_i + h * wl.velocity[k].norm():
                 if ti.static(fill):
                     ct.j[base + m] = p.count[None] + k
                 m += 1
@@ -219,12 +258,12 @@ def contact_pass(p: ti.template(), wl: ti.template(), g: ti.template(), bd: ti.t
             ct.count[i] = m
 
 
-def contact_count(p, wl, g, bd, ct, half_alert: float, alert: float, h: float) -> None:
-    contact_pass(p, wl, g, bd, ct, half_alert, alert, h, False)
+def contact_count(p, wl, nb, bd, ct, alert: float, h: float) -> None:
+    contact_pass(p, wl, nb, bd, ct, alert, h, False)
 
 
-def contact_fill(p, wl, g, bd, ct, half_alert: float, alert: float, h: float) -> None:
-    contact_pass(p, wl, g, bd, ct, half_alert, alert, h, True)
+def contact_fill(p, wl, nb, bd, ct, alert: float, h: float) -> None:
+    contact_pass(p, wl, nb, bd, ct, alert, h, True)
 
 
 @ti.kernel

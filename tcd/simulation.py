@@ -20,7 +20,7 @@ import numpy as np
 import taichi as ti
 
 from . import backend, contacts as ck, partitioned as pk, solver as sk
-from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Partition,
+from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
                     Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
@@ -45,7 +45,11 @@ class SolverSettings:
     overlap_slop: interpenetration (fraction of the smallest diameter) left alone by the
     end-of-step position projection; projection_passes: its sweeps per step (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
-    (both schedules; False: bond by bond, which converges badly on light grains)."""
+    (both schedules; False: bond by bond, which converges badly on light grains);
+    neighbour_skin: skin of the broad phase's neighbour list as a fraction of the smallest
+    radius (contacts are picked from the list every step, the grid is only walked when a
+    particle could have crossed the skin; the contacts are the same for any skin, only the
+    cost changes; 0: room for about three steps of the fastest grain's reach only)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -59,6 +63,7 @@ class SolverSettings:
     overlap_slop: float = 0.002
     projection_passes: int = 2
     bond_blocks: bool = True
+    neighbour_skin: float = 2.0
 
     def __post_init__(self):
         if not self.time_step > 0:
@@ -81,6 +86,8 @@ class SolverSettings:
                              f"{self.overlap_slop}, {self.projection_passes}")
         if not self.alert_ratio > 0:
             raise ValueError(f"alert_ratio must be positive, got {self.alert_ratio}")
+        if not self.neighbour_skin >= 0:
+            raise ValueError(f"neighbour_skin must be >= 0, got {self.neighbour_skin}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,6 +228,9 @@ class Simulation:
         # a settled bed has about 3 contacts per sphere (walls included): the buffer grows if not
         cap = contact_capacity if contact_capacity else max(64, 4 * n)
         self.contacts = acquire(Contacts, cap, self.particles.capacity)
+        self.neighbours = acquire(Neighbours, 2 * cap, self.particles.capacity)
+        self._skin = None           # skin of the current neighbour list (None: build one)
+        self.neighbour_builds = 0
         self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.colours = None
         self.partition = None
@@ -250,8 +260,8 @@ class Simulation:
 
     def close(self) -> None:
         """Hand the fields back to the pool for the next simulation (done on deletion too)."""
-        for name in ("particles", "wall_fields", "grid", "contacts", "bonds", "colours", "partition",
-                     "stats"):
+        for name in ("particles", "wall_fields", "grid", "neighbours", "contacts", "bonds", "colours",
+                     "partition", "stats"):
             release(self.__dict__.pop(name, None))
 
     def __del__(self):
@@ -411,26 +421,51 @@ class Simulation:
 
     def _build_contacts(self) -> None:
         p, wl, bd = self.particles, self.wall_fields, self.bonds
-        half = 0.5 * self.alert
+        h = self.settings.time_step
+        if self._skin is None or 2.0 * ck.neighbour_motion(p, self.neighbours, h, True) > self._skin:
+            self._build_neighbours()
+        while True:
+            ct = self.contacts
+            ck.contact_count(p, wl, self.neighbours, bd, ct, self.alert, h)
+            total = ck.exclusive_scan(ct.count, ct.start, self.n)
+            if total <= ct.capacity:
+                break
+            self._resize_contacts(int(total * 1.5) + 16)
+        ct.total[None] = total
+        ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h)
+
+    def _build_neighbours(self) -> None:
+        """A new neighbour list, its skin the setting's or, for fast grains, room for about
+        three steps of their reach (a list that lasts at least the coming step)."""
+        p = self.particles
+        h = self.settings.time_step
+        reach = ck.neighbour_motion(p, self.neighbours, h, False)
+        skin = max(self.settings.neighbour_skin * self.r_min, 6.0 * reach)
+        half = 0.5 * (self.alert + skin)
         while True:
             g = self.grid
-            ck.grid_count(p, g, half, self.settings.time_step)
+            ck.grid_count(p, g, half)
             total = ck.grid_scan(g)
             if total <= g.capacity:
                 break
             self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")
             release(g)
             self.grid = self._make_grid(2 * total)
-        ck.grid_scatter(p, self.grid, half, self.settings.time_step)
+        ck.grid_scatter(p, self.grid, half)
         while True:
-            ct = self.contacts
-            ck.contact_count(p, wl, self.grid, bd, ct, half, self.alert, self.settings.time_step)
-            total = ck.exclusive_scan(ct.count, ct.start, self.n)
-            if total <= ct.capacity:
+            nb = self.neighbours
+            ck.neighbour_pass(p, self.grid, nb, half, False)
+            total = ck.exclusive_scan(nb.count, nb.start, self.n)
+            if total <= nb.capacity:
                 break
-            self._resize_contacts(int(total * 1.5) + 16)
-        ct.total[None] = total
-        ck.contact_fill(p, wl, self.grid, bd, ct, half, self.alert, self.settings.time_step)
+            capacity = int(total * 1.5) + 16
+            self.grow_events.append(f"neighbour pairs {nb.capacity} -> {capacity}")
+            release(nb)
+            self.neighbours = acquire(Neighbours, capacity, p.capacity)
+        nb.total[None] = total
+        ck.neighbour_pass(p, self.grid, nb, half, True)
+        self._skin = skin
+        self.neighbour_builds += 1
 
     def _resize_contacts(self, capacity: int, keep_current: bool = False) -> None:
         """A contact buffer of `capacity` slots holding the warm-start history of the old one
@@ -571,6 +606,7 @@ class Simulation:
                              "(build the simulation with system=...)")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
+        self._skin = None
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
             self._resize_contacts(m)
@@ -709,7 +745,8 @@ class Simulation:
         return out
 
     def memory_bytes(self) -> int:
-        parts = [self.particles, self.contacts, self.bonds, self.grid, self.wall_fields]
+        parts = [self.particles, self.contacts, self.bonds, self.grid, self.neighbours,
+                 self.wall_fields]
         parts += [o for o in (self.colours, self.partition) if o is not None]
         return sum(field_bytes(o) for o in parts)
 
@@ -734,6 +771,7 @@ class Simulation:
 
     def set_positions(self, x) -> None:
         put(self.particles.x, np.asarray(x, dtype=float).reshape(self.n, 3))
+        self._skin = None
 
     def set_velocities(self, v) -> None:
         put(self.particles.v, np.zeros((self.n, 3)) + np.asarray(v, dtype=float))

@@ -195,6 +195,25 @@ class Grid:
 
 
 @ti.data_oriented
+class Neighbours:
+    """Neighbour (Verlet) list of the broad phase: per particle i (CSR: count, start over
+    `particle_capacity`), the partners j > i within the alert distance plus the skin when it
+    was built, ascending, in j (`capacity` pairs); x_ref: the positions it was built at;
+    motion: scratch of contacts.neighbour_motion."""
+
+    def __init__(self, capacity: int, particle_capacity: int):
+        self.capacity, self.pool_args = capacity, (particle_capacity,)
+        self.j = _int(capacity)
+        self.count, self.start = _int(particle_capacity), _int(particle_capacity + 1)
+        self.x_ref = _vec(particle_capacity)
+        self.motion = _scalar(backend.real())
+        self.total = _scalar()
+
+    def reset(self):
+        self.total[None] = 0
+
+
+@ti.data_oriented
 class Contacts:
     """Frictional contacts of one step, in canonical order: grouped by first particle i
     (ascending), then partner j ascending (particles, then walls as j = N + wall index).

@@ -68,6 +68,53 @@ def test_broad_phase_with_particles_outside_grid_and_growing_buffers():
     assert set(zip(c["i"].tolist(), c["j"].tolist())) == brute_force_pairs(x, r, sim.alert)
     assert any("contacts" in e for e in sim.grow_events)
     assert any("grid" in e for e in sim.grow_events)
+    assert any("neighbour pairs" in e for e in sim.grow_events)
+
+
+def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
+    """The neighbour list is reused while no grain can have crossed its skin: the contacts of
+    every step, built from it, are still exactly the brute-force pairs of that step."""
+    r, x = random_cloud(400, 5)
+    v = np.random.default_rng(5).normal(0.0, 0.3, size=x.shape)
+    wl = [walls.plane((0, 0, 0), (0, 0, 1))]
+    sim = Simulation(r, x, velocity=v, walls=wl, settings=SolverSettings(neighbour_skin=3.0),
+                     domain=((0, 0, 0), (0.05, 0.05, 0.05)))
+    steps = 30
+    for _ in range(steps):
+        x0, v0 = sim.positions(), sim.velocities()
+        sim.step()
+        c = sim.contact_arrays()
+        pairs = [(i, j) for i, j in zip(c["i"].tolist(), c["j"].tolist()) if j < sim.n]
+        assert set(pairs) == brute_force_pairs(x0, r, sim.alert, v0)
+        assert pairs == sorted(pairs)
+    assert 1 < sim.neighbour_builds < steps // 2, sim.neighbour_builds
+    # a grain moved from outside (set_positions) makes a new list
+    builds = sim.neighbour_builds
+    x1 = sim.positions()
+    x1[0] = x1[1] + np.array([r[0] + r[1], 0.0, 0.0])
+    sim.set_positions(x1)
+    sim._build_contacts()
+    c = sim.contact_arrays()
+    assert sim.neighbour_builds == builds + 1
+    assert (0, 1) in set(zip(c["i"].tolist(), c["j"].tolist()))
+
+
+def test_neighbour_skin_changes_no_number():
+    """Any skin gives the same contacts, so the same numbers bit for bit; only the count of
+    list builds changes (skin 0: room for about three steps of the fastest grain's reach)."""
+    def run(skin):
+        rng = np.random.default_rng(3)
+        r = packing.course_radii("binder", 150, rng)
+        x = packing.lattice_column(r, 0.08, 0.0, rng)
+        wl = [walls.plane((0, 0, 0), (0, 0, 1)), walls.cylinder((0, 0, 0), (0, 0, 1), 0.04, (0, 1))]
+        sim = Simulation(r, x, walls=wl, friction=0.7, settings=SolverSettings(neighbour_skin=skin),
+                         domain=((-0.04, -0.04, 0), (0.04, 0.04, 0.6)))
+        sim.step(1500)
+        return sim.positions(), sim.velocities(), sim.neighbour_builds
+    a, b, c = run(0.0), run(2.0), run(6.0)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert np.array_equal(a[0], c[0]) and np.array_equal(a[1], c[1])
+    assert c[2] < b[2] < a[2] < 1500, (a[2], b[2], c[2])
 
 
 @pytest.mark.parametrize("blocks", [False, True])
@@ -305,7 +352,8 @@ def test_bad_input_is_refused_with_a_named_reason(bad, message):
 
 @pytest.mark.parametrize("bad, message", [
     (dict(time_step=0.0), "time_step"), (dict(theta=0.3), "theta"),
-    (dict(tolerance=-1.0), "tolerance"), (dict(schedule="magic"), "schedule")])
+    (dict(tolerance=-1.0), "tolerance"), (dict(schedule="magic"), "schedule"),
+    (dict(neighbour_skin=-0.1), "neighbour_skin")])
 def test_bad_solver_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
         SolverSettings(**bad)
