@@ -109,8 +109,8 @@ class SolverConfig(_Model):
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
     (true, the default; false: bond by bond, which stalls on the bonds of light grains);
     neighbour_skin: skin of the broad phase's neighbour list / smallest radius (cost only:
-    the contacts are the same for any skin; 0: room for about three steps of the fastest
-    grain's reach only)."""
+    the contacts are the same for any skin; fast grains get room for about two steps of
+    their reach)."""
     time_step: float = Field(2e-4, gt=0)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)

@@ -16,11 +16,12 @@ meet in the broad phase even when they occupy the same space, and a wall tagged 
 only touches that system's particles.
 
 Neighbour list (Verlet list): the grid is only walked to build, per particle, the list of
-partners j > i within the alert distance plus a skin, sorted ascending (two passes: count, scan,
-fill), with the positions it was built at. Every step the contacts are picked from it; it is
-rebuilt when a particle's motion since the build plus its reach over the step could close the
-skin (twice the largest such distance above the skin), so it always holds every pair that may
-touch by the end of the step, and the contacts are exactly those a grid walk would find.
+partners j > i whose gap is below the alert distance plus both particles' margins (half the
+skin, more for fast grains), sorted ascending (two passes: count, scan, fill), with the
+positions it was built at. Every step the contacts are picked from it; it is rebuilt when a
+particle's motion since the build plus its reach over the step exceeds its margin, so it always
+holds every pair that may touch by the end of the step, and the contacts are exactly those a
+grid walk would find.
 Contact building is two-pass per particle (count, scan, fill) over its list, which makes the
 contact order canonical (i ascending, j ascending, walls last) and independent of thread
 scheduling. Warm start: each contact looks up its pair in the previous
@@ -74,21 +75,22 @@ def reach(p: ti.template(), i, h):
 
 
 @ti.func
-def box_cells(g: ti.template(), p: ti.template(), i, half_reach):
-    """Cells of sphere i's bounding box enlarged by `half_reach` (half the alert distance
-    plus half the neighbour list's skin)."""
-    e = p.radius[i] + half_reach
+def box_cells(g: ti.template(), p: ti.template(), nb: ti.template(), i, half_alert):
+    """Cells of sphere i's bounding box enlarged by half the alert distance plus its margin
+    in the neighbour list."""
+    e = p.radius[i] + half_alert + nb.margin[i]
     return cell_of(g, p.x[i] - e), cell_of(g, p.x[i] + e)
 
 
 @ti.kernel
-def grid_walk(p: ti.template(), g: ti.template(), half_reach: float, scatter: ti.template()):
+def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
+              scatter: ti.template()):
     """One walk of every particle's cells: per-bucket counts of the incidences (`scatter`
     False), or (True, after grid_scan) each incidence written at its bucket's slots."""
     for c in range(g.buckets[None]):
         g.cell_count[c] = 0
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_reach)
+        lo, hi = box_cells(g, p, nb, i, half_alert)
         offset = system_cells(g, p, i)
         for cx in range(lo[0], hi[0] + 1):
             for cy in range(lo[1], hi[1] + 1):
@@ -101,12 +103,12 @@ def grid_walk(p: ti.template(), g: ti.template(), half_reach: float, scatter: ti
                         g.keys[g.cell_start[b] + slot] = c
 
 
-def grid_count(p, g, half_reach: float) -> None:
-    grid_walk(p, g, half_reach, False)
+def grid_count(p, g, nb, half_alert: float) -> None:
+    grid_walk(p, g, nb, half_alert, False)
 
 
-def grid_scatter(p, g, half_reach: float) -> None:
-    grid_walk(p, g, half_reach, True)
+def grid_scatter(p, g, nb, half_alert: float) -> None:
+    grid_walk(p, g, nb, half_alert, True)
 
 
 @ti.kernel
@@ -165,16 +167,29 @@ def pair_gap(p: ti.template(), i, j):
     return (p.x[j] - p.x[i]).norm() - p.radius[i] - p.radius[j]
 
 
+# a list stays valid while every particle's motion plus reach is below this share of its margin
+# (room for rounding in the triangle inequality the list's validity rests on)
+MARGIN_USE = 1.0 - 1e-6
+
+
 @ti.kernel
-def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_reach: float,
-                   fill: ti.template()):
-    """The neighbour list: every pair (i, j), j > i, with a gap below 2 half_reach (the
-    alert distance plus the skin), found from the first cell their enlarged boxes share.
-    One walk of the cells around each particle counts its neighbours (`fill` False, into
-    nb.count) or writes them at nb.start (`fill` True) in ascending order, and keeps the
-    positions the list was built at (nb.x_ref)."""
+def neighbour_margins(p: ti.template(), nb: ti.template(), half_skin: float, h: float):
+    """Each particle's margin for a new list: half the skin, or three times its reach over
+    the coming step for a fast grain (a list that lasts it about two steps)."""
     for i in range(p.count[None]):
-        lo, hi = box_cells(g, p, i, half_reach)
+        nb.margin[i] = ti.max(half_skin, 3.0 * reach(p, i, h))
+
+
+@ti.kernel
+def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
+                   fill: ti.template()):
+    """The neighbour list: every pair (i, j), j > i, with a gap below the alert distance plus
+    both margins, found from the first cell their enlarged boxes share. One walk of the cells
+    around each particle counts its neighbours (`fill` False, into nb.count) or writes them at
+    nb.start (`fill` True) in ascending order, and keeps the positions the list was built at
+    (nb.x_ref)."""
+    for i in range(p.count[None]):
+        lo, hi = box_cells(g, p, nb, i, half_alert)
         base = 0
         if ti.static(fill):
             base = nb.start[i]
@@ -189,10 +204,10 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_r
                     for s in range(g.cell_start[b], g.cell_start[b] + g.cell_count[b]):
                         j = g.items[s]
                         if j > i and g.keys[s] == ci:
-                            lo_j, hi_j = box_cells(g, p, j, half_reach)
+                            lo_j, hi_j = box_cells(g, p, nb, j, half_alert)
                             first = ti.max(lo, lo_j)
                             if first[0] == c[0] and first[1] == c[1] and first[2] == c[2]:
-                                if pair_gap(p, i, j) < 2.0 * half_reach:
+                                if pair_gap(p, i, j) < 2.0 * half_alert + nb.margin[i] + nb.margin[j]:
                                     if ti.static(fill):
                                         nb.j[base + m] = j
                                     m += 1
@@ -211,17 +226,16 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_r
 
 
 @ti.kernel
-def neighbour_motion(p: ti.template(), nb: ti.template(), h: float, moved: ti.template()) -> float:
-    """max over the particles of (distance moved since the list was built + reach over the
-    coming step): the list holds every pair that may touch by the end of the step while
-    twice this stays below its skin. `moved` False: the largest reach alone."""
-    nb.motion[None] = 0.0
+def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float) -> ti.i32:
+    """1 when some particle's distance moved since the list was built plus its reach over
+    the coming step exceeds its margin: a pair missing from the list could then touch. While
+    none does, a pair outside the list (gap at the build >= alert + both margins) still has
+    a gap of at least alert + both reaches, so it cannot be a contact candidate."""
+    nb.stale[None] = 0
     for i in range(p.count[None]):
-        m = reach(p, i, h)
-        if ti.static(moved):
-            m += (p.x[i] - nb.x_ref[i]).norm()
-        ti.atomic_max(nb.motion[None], m)
-    return nb.motion[None]
+        if (p.x[i] - nb.x_ref[i]).norm() + reach(p, i, h) > MARGIN_USE * nb.margin[i]:
+            nb.stale[None] = 1
+    return nb.stale[None]
 
 
 @ti.kernel

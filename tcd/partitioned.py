@@ -6,9 +6,9 @@ thick, whatever the particle numbering). An item -- a contact, or a bond item (a
 bond block, or a single bond) -- whose dynamic bodies all lie in slab k is interior to k; the
 others are boundary items. One sweep is: the P interior lists at once
 (unit k: slab k's bond items, then its contacts), then, on one thread, the boundary list
-(bond items, then contacts), the convergence test and the conjugate-gradient (NNCG) momentum of
-the bonds and boundary contacts; the momentum of the interior contacts opens the next sweep's
-units. Forward and backward sweeps alternate inside every list, as in `solver.nlgs_serial`.
+(bond items, then contacts); then the bonds' changes in P units at once; then, on one thread,
+the convergence test and the conjugate-gradient (NNCG) momentum of the boundary bonds and
+contacts; the momentum of the interior bonds and contacts opens the next sweep's units. Forward and backward sweeps alternate inside every list, as in `solver.nlgs_serial`.
 Two interior lists share no dynamic body, so running them at once gives exactly the numbers of
 running them one after the other: the result depends on P (it fixes the visiting order), never
 on thread timing or on how many threads Taichi really has. Same scenario, same P, same numbers.
@@ -23,9 +23,12 @@ waits until its sweep is released, runs it, and the worker that finishes a sweep
 runs the boundary and releases the next sweep. A worker never waits for a unit that no running
 thread holds, so the schedule finishes with any number of threads, one included.
 
-Bonds are kept exactly as in the serial kernel: each bond's change over a sweep is measured
-against a snapshot of the impulses taken when the sweep is released, and the bonds' momentum
-pass is serial (one pass over the bonds per sweep, cheap next to the block solves).
+Bonds are kept as in the serial kernel: each bond's change over a sweep is measured against a
+snapshot of its impulse taken before the sweep. After the boundary list, the workers measure
+the bonds' changes in P ranges of bond indices at once (a second phase of every sweep: those
+only read impulses and write per-bond records), and the momentum and snapshot of a bond whose
+two particles lie in slab k open worker k's next unit, as for the contacts; only the boundary
+bonds' momentum stays on one thread.
 """
 
 import taichi as ti
@@ -77,6 +80,18 @@ def bond_item_list(bd: ti.template(), pt: ti.template(), q, parts,
 
 
 @ti.func
+def bond_list(bd: ti.template(), pt: ti.template(), b, parts):
+    """Momentum list of bond b: slab k when both its particles lie in k, `parts` (the
+    boundary) otherwise, -1 when broken."""
+    lst = -1
+    if bd.state[b] == INTACT:
+        lst = pt.part[bd.i[b]]
+        if pt.part[bd.j[b]] != lst:
+            lst = parts
+    return lst
+
+
+@ti.func
 def contact_list(p: ti.template(), ct: ti.template(), pt: ti.template(), c, parts):
     lst = pt.part[ct.i[c]]
     j = ct.j[c]
@@ -97,7 +112,8 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
     """Split the particles into `parts` slabs of about equal work across the longest extent of
     their centres (a work histogram over SLAB_BINS bins, cut at its quantiles) and list the
     items of each slab (bond items in `border`, CSR `bstart`; contacts in `corder`, CSR
-    `cstart`), list `parts` being the boundary. Canonical order inside every list. Serial,
+    `cstart`; intact bonds, for their momentum, in `morder`, CSR `mstart`), list `parts`
+    being the boundary. Canonical order inside every list. Serial,
     O(items + SLAB_BINS), deterministic."""
     ti.loop_config(serialize=True)
     for _ in range(1):
@@ -136,18 +152,25 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
         for c in range(parts + 2):
             pt.bstart[c] = 0
             pt.cstart[c] = 0
+            pt.mstart[c] = 0
         for q in range(nb):
             lst = bond_item_list(bd, pt, q, parts, blocks)
             if lst >= 0:
                 pt.bstart[lst + 1] += 1
         for c in range(nc):
             pt.cstart[contact_list(p, ct, pt, c, parts) + 1] += 1
+        for b in range(bd.total[None]):
+            lst = bond_list(bd, pt, b, parts)
+            if lst >= 0:
+                pt.mstart[lst + 1] += 1
         for c in range(parts + 1):
             pt.bstart[c + 1] += pt.bstart[c]
             pt.cstart[c + 1] += pt.cstart[c]
+            pt.mstart[c + 1] += pt.mstart[c]
         for c in range(parts + 1):
             pt.bcur[c] = pt.bstart[c]
             pt.ccur[c] = pt.cstart[c]
+            pt.mcur[c] = pt.mstart[c]
         for q in range(nb):
             lst = bond_item_list(bd, pt, q, parts, blocks)
             if lst >= 0:
@@ -157,6 +180,11 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
             lst = contact_list(p, ct, pt, c, parts)
             pt.corder[pt.ccur[lst]] = c
             pt.ccur[lst] += 1
+        for b in range(bd.total[None]):
+            lst = bond_list(bd, pt, b, parts)
+            if lst >= 0:
+                pt.morder[pt.mcur[lst]] = b
+                pt.mcur[lst] += 1
 
 
 # --- one list of one sweep -----------------------------------------------------------------------
@@ -194,27 +222,56 @@ def sweep_list(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
 
 
 @ti.func
-def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-                st: ti.template(), pt: ti.template(), s, parts, max_sweeps, tol, check_every,
-                accel: ti.template(), blocks: ti.template()):
-    """After the last unit of sweep s, on one thread: the boundary list, the bonds' changes,
-    the convergence test; then either the end (pt.stop) or the momentum of the bonds and
-    boundary contacts, the bonds' snapshot and the release of sweep s + 1."""
+def open_unit(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(), k,
+              accel: ti.template()):
+    """Start of slab k's unit in sweep s > 0: the NNCG momentum of its interior bonds (then
+    their snapshot) and contacts from sweep s - 1."""
+    beta = pt.beta[None]
+    for m in range(pt.mstart[k], pt.mstart[k + 1]):
+        b = pt.morder[m]
+        if ti.static(accel == 1):
+            sk.bond_momentum(p, bd, b, beta)
+        bd.acc_d[b] = bd.impulse[b]
+    if ti.static(accel == 1):
+        for m in range(pt.cstart[k], pt.cstart[k + 1]):
+            sk.contact_momentum(p, ct, pt.corder[m], beta)
+
+
+@ti.func
+def bond_changes(bd: ti.template(), pt: ti.template(), k, parts):
+    """Bookkeeping unit k: the changes over the sweep of the intact bonds in the k-th of
+    `parts` ranges of bond indices, their sums into pt.bsums[k]."""
+    nbd = bd.total[None]
+    dsum = 0.0
+    rsum = 0.0
+    g2 = 0.0
+    for b in range(k * nbd // parts, (k + 1) * nbd // parts):
+        if bd.state[b] == INTACT:
+            d2, da, ra = sk.bond_sweep_change(bd, b)
+            g2 += d2
+            dsum += da
+            rsum += ra
+    pt.bsums[k] = ti.Vector([dsum, rsum, g2])
+
+
+@ti.func
+def close_sweep(p: ti.template(), ct: ti.template(), bd: ti.template(), st: ti.template(),
+                pt: ti.template(), s, parts, max_sweeps, tol, check_every,
+                accel: ti.template()):
+    """After the last bookkeeping unit of sweep s, on one thread: the convergence test; then
+    either the end (pt.stop) or the momentum of the boundary bonds (then their snapshot) and
+    contacts and the release of sweep s + 1."""
     sweeps = s + 1
     measure = 0
     if sweeps % check_every == 0 or sweeps >= max_sweeps:
         measure = 1
-    sweep_list(p, wl, ct, bd, pt, parts, s % 2, measure, accel, blocks)
     dsum = 0.0
     rsum = 0.0
     g2 = 0.0
-    for b in range(bd.total[None]):
-        if bd.state[b] == INTACT:
-            d2, da, ra = sk.bond_sweep_change(bd, b)
-            if ti.static(accel == 1):
-                g2 += d2
-            dsum += da
-            rsum += ra
+    for k in range(parts):
+        dsum += pt.bsums[k][0]
+        rsum += pt.bsums[k][1]
+        g2 += pt.bsums[k][2]
     for k in range(parts + 1):
         dsum += pt.sums[k][0]
         rsum += pt.sums[k][1]
@@ -236,14 +293,9 @@ def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     else:
         if ti.static(accel == 1):
             beta = sk.nncg_beta(g2, pt.g2_prev[None], sweeps)
-            for b in range(bd.total[None]):
-                sk.bond_momentum(p, bd, b, beta)
-            for m in range(pt.cstart[parts], pt.cstart[parts + 1]):
-                sk.contact_momentum(p, ct, pt.corder[m], beta)
             pt.beta[None] = beta
             pt.g2_prev[None] = g2
-        for b in range(bd.total[None]):
-            bd.acc_d[b] = bd.impulse[b]
+        open_unit(p, ct, bd, pt, parts, accel)
         ti.atomic_add(pt.released[None], 1)
 
 
@@ -272,24 +324,29 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
         if t % SYSTEM_SPREAD == 0:
             working = 1
             while working == 1:
+                # unit u: phase u // parts (2 s: solving sweep s, 2 s + 1: its bookkeeping)
                 u = ti.atomic_add(pt.claim[None], 1)
-                s = u // parts
+                ph = u // parts
                 k = u % parts
-                # wait for sweep s (atomic reads: never hoisted out of the loop)
-                while ti.atomic_or(pt.released[None], 0) < s and ti.atomic_or(pt.stop[None], 0) == 0:
+                s = ph // 2
+                # wait for the phase (atomic reads: never hoisted out of the loop)
+                while ti.atomic_or(pt.released[None], 0) < ph and ti.atomic_or(pt.stop[None], 0) == 0:
                     pass
                 if ti.atomic_or(pt.stop[None], 0) != 0:
                     working = 0
-                else:
-                    if ti.static(accel == 1):
-                        if s > 0:
-                            beta = pt.beta[None]
-                            for m in range(pt.cstart[k], pt.cstart[k + 1]):
-                                sk.contact_momentum(p, ct, pt.corder[m], beta)
+                elif ph % 2 == 0:
+                    if s > 0:
+                        open_unit(p, ct, bd, pt, k, accel)
                     measure = 0
                     if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
                         measure = 1
                     sweep_list(p, wl, ct, bd, pt, k, s % 2, measure, accel, blocks)
-                    if ti.atomic_add(pt.finished[None], 1) == s * parts + parts - 1:
-                        close_sweep(p, wl, ct, bd, st, pt, s, parts, max_sweeps, tol,
-                                    check_every, accel, blocks)
+                    if ti.atomic_add(pt.finished[None], 1) == ph * parts + parts - 1:
+                        # the last solver of the sweep: the boundary list, then the bookkeeping
+                        sweep_list(p, wl, ct, bd, pt, parts, s % 2, measure, accel, blocks)
+                        ti.atomic_add(pt.released[None], 1)
+                else:
+                    bond_changes(bd, pt, k, parts)
+                    if ti.atomic_add(pt.finished[None], 1) == ph * parts + parts - 1:
+                        close_sweep(p, ct, bd, st, pt, s, parts, max_sweeps, tol, check_every,
+                                    accel)

@@ -48,8 +48,8 @@ class SolverSettings:
     (both schedules; False: bond by bond, which converges badly on light grains);
     neighbour_skin: skin of the broad phase's neighbour list as a fraction of the smallest
     radius (contacts are picked from the list every step, the grid is only walked when a
-    particle could have crossed the skin; the contacts are the same for any skin, only the
-    cost changes; 0: room for about three steps of the fastest grain's reach only)."""
+    particle may have moved more than its margin, half the skin or three steps of its reach
+    for a fast grain; the contacts are the same for any skin, only the cost changes)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -229,7 +229,7 @@ class Simulation:
         cap = contact_capacity if contact_capacity else max(64, 4 * n)
         self.contacts = acquire(Contacts, cap, self.particles.capacity)
         self.neighbours = acquire(Neighbours, 2 * cap, self.particles.capacity)
-        self._skin = None           # skin of the current neighbour list (None: build one)
+        self._neighbours_valid = False
         self.neighbour_builds = 0
         self.bonds = acquire(Bonds, 1, self.particles.capacity)
         self.colours = None
@@ -422,7 +422,7 @@ class Simulation:
     def _build_contacts(self) -> None:
         p, wl, bd = self.particles, self.wall_fields, self.bonds
         h = self.settings.time_step
-        if self._skin is None or 2.0 * ck.neighbour_motion(p, self.neighbours, h, True) > self._skin:
+        if not self._neighbours_valid or ck.neighbour_list_stale(p, self.neighbours, h):
             self._build_neighbours()
         while True:
             ct = self.contacts
@@ -435,26 +435,26 @@ class Simulation:
         ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h)
 
     def _build_neighbours(self) -> None:
-        """A new neighbour list, its skin the setting's or, for fast grains, room for about
-        three steps of their reach (a list that lasts at least the coming step)."""
+        """A new neighbour list (contacts.neighbour_pass): the grid walked with each particle's
+        box enlarged by half the alert distance plus its margin."""
         p = self.particles
         h = self.settings.time_step
-        reach = ck.neighbour_motion(p, self.neighbours, h, False)
-        skin = max(self.settings.neighbour_skin * self.r_min, 6.0 * reach)
-        half = 0.5 * (self.alert + skin)
+        half_alert = 0.5 * self.alert
+        half_skin = 0.5 * self.settings.neighbour_skin * self.r_min
+        ck.neighbour_margins(p, self.neighbours, half_skin, h)
         while True:
             g = self.grid
-            ck.grid_count(p, g, half)
+            ck.grid_count(p, g, self.neighbours, half_alert)
             total = ck.grid_scan(g)
             if total <= g.capacity:
                 break
             self.grow_events.append(f"grid items {g.capacity} -> {2 * total}")
             release(g)
             self.grid = self._make_grid(2 * total)
-        ck.grid_scatter(p, self.grid, half)
+        ck.grid_scatter(p, self.grid, self.neighbours, half_alert)
         while True:
             nb = self.neighbours
-            ck.neighbour_pass(p, self.grid, nb, half, False)
+            ck.neighbour_pass(p, self.grid, nb, half_alert, False)
             total = ck.exclusive_scan(nb.count, nb.start, self.n)
             if total <= nb.capacity:
                 break
@@ -462,9 +462,10 @@ class Simulation:
             self.grow_events.append(f"neighbour pairs {nb.capacity} -> {capacity}")
             release(nb)
             self.neighbours = acquire(Neighbours, capacity, p.capacity)
+            ck.neighbour_margins(p, self.neighbours, half_skin, h)
         nb.total[None] = total
-        ck.neighbour_pass(p, self.grid, nb, half, True)
-        self._skin = skin
+        ck.neighbour_pass(p, self.grid, nb, half_alert, True)
+        self._neighbours_valid = True
         self.neighbour_builds += 1
 
     def _resize_contacts(self, capacity: int, keep_current: bool = False) -> None:
@@ -606,7 +607,7 @@ class Simulation:
                              "(build the simulation with system=...)")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
-        self._skin = None
+        self._neighbours_valid = False
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
             self._resize_contacts(m)
@@ -771,7 +772,7 @@ class Simulation:
 
     def set_positions(self, x) -> None:
         put(self.particles.x, np.asarray(x, dtype=float).reshape(self.n, 3))
-        self._skin = None
+        self._neighbours_valid = False
 
     def set_velocities(self, v) -> None:
         put(self.particles.v, np.zeros((self.n, 3)) + np.asarray(v, dtype=float))

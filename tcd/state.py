@@ -197,16 +197,17 @@ class Grid:
 @ti.data_oriented
 class Neighbours:
     """Neighbour (Verlet) list of the broad phase: per particle i (CSR: count, start over
-    `particle_capacity`), the partners j > i within the alert distance plus the skin when it
-    was built, ascending, in j (`capacity` pairs); x_ref: the positions it was built at;
-    motion: scratch of contacts.neighbour_motion."""
+    `particle_capacity`), the partners j > i within the alert distance plus both margins when
+    it was built, ascending, in j (`capacity` pairs); x_ref: the positions it was built at;
+    margin: each particle's margin (m); stale: scratch of contacts.neighbour_list_stale."""
 
     def __init__(self, capacity: int, particle_capacity: int):
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         self.j = _int(capacity)
         self.count, self.start = _int(particle_capacity), _int(particle_capacity + 1)
         self.x_ref = _vec(particle_capacity)
-        self.motion = _scalar(backend.real())
+        self.margin = _real(particle_capacity)
+        self.stale = _scalar()
         self.total = _scalar()
 
     def reset(self):
@@ -315,8 +316,10 @@ class Partition:
     part: slab of each particle (0 .. parts-1); hist: work per bin across the sample (then the
     slab of each bin). Bond items (particle blocks or bonds) in `border` and contacts in
     `corder`, each as CSR lists over (slab 0, ..., slab parts-1, boundary): `bstart`, `cstart`
-    (MAX_PARTS + 2 entries; `bcur`, `ccur` their fill cursors), canonical order in a list.
-    sums: per list (sum |dR|, sum |R|, sum |dR|^2) of the contacts in the current sweep.
+    (MAX_PARTS + 2 entries; `bcur`, `ccur` their fill cursors), canonical order in a list;
+    intact bonds by the list of their momentum in `morder` (`mstart`, `mcur`).
+    sums: per list (sum |dR|, sum |R|, sum |dR|^2) of the contacts in the current sweep;
+    bsums: the same per bookkeeping unit (a range of bonds).
     claim, finished, released, stop: the workers' counters; beta, g2_prev, residual: the NNCG
     momentum and the last measured residual, shared between the workers."""
 
@@ -327,7 +330,10 @@ class Partition:
         self.border, self.corder = _int(capacity), _int(capacity)
         self.bstart, self.cstart = _int(MAX_PARTS + 2), _int(MAX_PARTS + 2)
         self.bcur, self.ccur = _int(MAX_PARTS + 1), _int(MAX_PARTS + 1)
+        self.morder = _int(capacity)
+        self.mstart, self.mcur = _int(MAX_PARTS + 2), _int(MAX_PARTS + 1)
         self.sums = _vec(MAX_PARTS + 1)
+        self.bsums = _vec(MAX_PARTS)
         self.claim, self.finished, self.released, self.stop = (_scalar(), _scalar(), _scalar(),
                                                               _scalar())
         self.beta, self.g2_prev, self.residual = (_scalar(backend.real()), _scalar(backend.real()),

@@ -101,7 +101,7 @@ def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
 
 def test_neighbour_skin_changes_no_number():
     """Any skin gives the same contacts, so the same numbers bit for bit; only the count of
-    list builds changes (skin 0: room for about three steps of the fastest grain's reach)."""
+    list builds changes (skin 0: each grain's margin is three times its reach)."""
     def run(skin):
         rng = np.random.default_rng(3)
         r = packing.course_radii("binder", 150, rng)
