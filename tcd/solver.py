@@ -203,7 +203,7 @@ def cholesky_inverse6(a):
 
 
 # the 21 entries of a symmetric 6 x 6 matrix (lower triangle, row by row), as kept in
-# Particles.bond_inverse
+# Bonds.inverse
 TRI6 = [(r, c) for r in range(6) for c in range(r + 1)]
 
 
@@ -274,7 +274,7 @@ def held_unknown(p: ti.template(), q, r: ti.template()):
 def bonds_factor(p: ti.template(), bd: ti.template()):
     """Per step, after bonds_prepare: (alpha, beta) of each intact bond's ends (Bonds.stiff)
     and the inverse block matrix M' + sum G_b^T K_b G_b of each particle with intact bonds
-    (Particles.bond_inverse; held unknowns get identity rows and columns)."""
+    (Bonds.inverse; held unknowns get identity rows and columns)."""
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             i, j = bd.i[b], bd.j[b]
@@ -331,7 +331,7 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
             f = ti.Vector.zero(float, 21)
             for e in ti.static(range(21)):
                 f[e] = inv[TRI6[e][0], TRI6[e][1]]
-            p.bond_inverse[q] = f
+            bd.inverse[q] = f
 
 
 @ti.func
@@ -340,9 +340,9 @@ def skew(a):
 
 
 @ti.func
-def block_inverse_apply(p: ti.template(), q, g):
+def block_inverse_apply(bd: ti.template(), q, g):
     """xi = A^-1 g with particle q's stored symmetric block inverse."""
-    f = p.bond_inverse[q]
+    f = bd.inverse[q]
     xi = ti.Vector.zero(float, 6)
     for e in ti.static(range(21)):
         r, c = ti.static(TRI6[e][0], TRI6[e][1])
@@ -385,7 +385,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         for r in ti.static(range(6)):
             if held_unknown(p, q, r) == 1:
                 g[r] = 0.0
-        xi = block_inverse_apply(p, q, g)
+        xi = block_inverse_apply(bd, q, g)
         dv = ti.Vector([xi[0], xi[1], xi[2]])
         dw = ti.Vector([xi[3], xi[4], xi[5]])
         sum_q = ti.Vector([0.0, 0.0, 0.0])

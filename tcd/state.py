@@ -126,9 +126,6 @@ class Particles:
         self.x = _vec(c)
         self.v_old, self.w_old, self.f_ext = _vec(c), _vec(c), _vec(c)
         self.layer = _int(c)
-        # per step: inverse of the particle's bond block (solver.bonds_factor), the 21 entries
-        # of its lower triangle
-        self.bond_inverse = ti.Vector.field(21, backend.real(), shape=c)
         # batched systems: particle i belongs to system[i]; system s holds the contiguous
         # particles sys_start[s] .. sys_start[s + 1] - 1 (one system: all of them)
         self.system = _int(c)
@@ -257,11 +254,15 @@ class Bonds:
     Burgers history (normal: hd_n dashpot, hk_n Kelvin; tangential: hd_t, hk_t, m),
     broken_time (s, NaN while intact), broken_pos (m).
     Per step: normal, rhs_n, rhs_t (displacement terms / (theta H)), cn, ct (extra compliance
-    1/(theta H^2 K)), d_t_beg; stiff and resid (the particle-block relaxation's)."""
+    1/(theta H^2 K)), d_t_beg; stiff and resid (the particle-block relaxation's);
+    inverse: per particle, the inverse of its bond block (solver.bonds_factor, the 21 entries
+    of its lower triangle), a single row in a set made without bonds (`blocks` False: an
+    unbonded simulation does not pay 168 bytes per particle for it)."""
 
-    def __init__(self, capacity: int, particle_capacity: int):
-        self.capacity, self.pool_args = capacity, (particle_capacity,)
+    def __init__(self, capacity: int, particle_capacity: int, blocks: bool = True):
+        self.capacity, self.pool_args = capacity, (particle_capacity, blocks)
         c = capacity
+        self.inverse = ti.Vector.field(21, backend.real(), shape=particle_capacity if blocks else 1)
         # the particle-block relaxation's per-bond record (AoS), read whole at every visit
         (self.i, self.j, self.state, self.normal, self.impulse, self.cn, self.ct, self.rhs_n,
          self.rhs_t, self.stiff, self.resid) = _struct(
