@@ -648,6 +648,10 @@ class Simulation:
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
         self._set_bond_arrays(bonds)
+        # bonded pairs are not contacts: after the next step the buffer (sized for an unbonded
+        # sample, or for a batch's histories) is refitted to the contacts, as after create_bonds
+        if len(bonds["i"]):
+            self._refit_contacts = True
         # the wall forces of the last step: a servo plate reads them before the next step
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
         if len(force) == len(self.walls):

@@ -7,7 +7,7 @@ import pytest
 
 from tcd import laws, walls
 from tcd.simulation import BondLaw, Simulation, SolverSettings
-from tcd.state import put
+from tcd.state import capacity_class, put
 
 K_M, ETA_M, K_K, ETA_K = 2e6, 2e7, 2e6, 2e7
 SIGMA_Y = 2.7e6
@@ -286,6 +286,27 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
     assert fitted.memory_bytes() < kept.memory_bytes()
     fitted.close()
     kept.close()
+
+
+def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original():
+    """A bonded state loaded into a new simulation (a resumed run, a batch) starts with a
+    buffer sized for an unbonded sample; it is refitted after the next step, as after
+    create_bonds, and the motion is the original's bit for bit."""
+    original, _, _ = _bonded_pile(True)
+    copy = Simulation(original.radii(), original.positions(), walls=original.walls,
+                      settings=original.settings, domain=original.domain, time=original.time)
+    copy.load_state_dict(original.state_dict())
+    big = copy.contacts.capacity
+    assert big > capacity_class(int(1.5 * int(original.contacts.total[None])) + 64)
+    original.step(5)
+    copy.step(5)
+    assert copy.contacts.capacity < big
+    assert copy.contacts.capacity >= int(copy.contacts.total[None])
+    assert np.array_equal(copy.positions(), original.positions())
+    assert np.array_equal(copy.velocities(), original.velocities())
+    assert np.array_equal(copy.state_dict()["bonds/impulse"], original.state_dict()["bonds/impulse"])
+    original.close()
+    copy.close()
 
 
 @pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
