@@ -240,7 +240,7 @@ class Simulation:
             domain = (position.min(axis=0) - radius.max(), position.max(axis=0) + radius.max())
         self.domain = (np.asarray(domain[0], float), np.asarray(domain[1], float))
         self.cell_size = (float(cell_size) if cell_size else
-                          default_cell_size(radius, self.alert, 0.5 * settings.neighbour_skin * self.r_min))
+                          default_cell_size(radius, self.alert, self._half_skin))
         self.cell_size = max(self.cell_size, 1e-9)
         self.grid = self._make_grid(self._grid_capacity_estimate(radius))
         # a settled bed has about 3 contacts per sphere (walls included): the buffer grows if not
@@ -288,12 +288,15 @@ class Simulation:
         except Exception:
             pass
 
+    @property
+    def _half_skin(self) -> float:
+        """Half the neighbour list's skin (m): the margin of a grain at rest."""
+        return 0.5 * self.settings.neighbour_skin * self.r_min
+
     def _grid_capacity_estimate(self, radius) -> int:
         # each box: radius + half the alert distance + the neighbour list's margin (half the
-        # skin for a grain at rest)
-        margin = 0.5 * self.settings.neighbour_skin * self.r_min
-        # a box of side s overlaps (s / cell + 1)^3 cells on average over its positions
-        span = 2.0 * (radius + 0.5 * self.alert + margin) / self.cell_size + 1.0
+        # skin for a grain at rest); a box of side s overlaps (s / cell + 1)^3 cells on average
+        span = 2.0 * (radius + 0.5 * self.alert + self._half_skin) / self.cell_size + 1.0
         return int(np.sum(span ** 3) * 1.15) + 64
 
     def set_walls(self, walls: Sequence[Wall]) -> None:
@@ -462,8 +465,7 @@ class Simulation:
         p = self.particles
         h = self.settings.time_step
         half_alert = 0.5 * self.alert
-        half_skin = 0.5 * self.settings.neighbour_skin * self.r_min
-        ck.neighbour_margins(p, self.neighbours, half_skin, h)
+        ck.neighbour_margins(p, self.neighbours, self._half_skin, h)
         while True:
             g = self.grid
             ck.grid_count(p, g, self.neighbours, half_alert)
@@ -472,9 +474,10 @@ class Simulation:
                 break
             # a quarter more than needed (the capacity classes add up to another quarter):
             # the incidence list is the largest broad-phase buffer, and stays allocated
-            self.grow_events.append(f"grid items {g.capacity} -> {int(1.25 * total) + 64}")
+            capacity = int(1.25 * total) + 64
+            self.grow_events.append(f"grid items {g.capacity} -> {capacity}")
             release(g)
-            self.grid = self._make_grid(int(1.25 * total) + 64)
+            self.grid = self._make_grid(capacity)
         ck.grid_scatter(p, self.grid, self.neighbours, half_alert)
         while True:
             nb = self.neighbours
@@ -486,7 +489,7 @@ class Simulation:
             self.grow_events.append(f"neighbour pairs {nb.capacity} -> {capacity}")
             release(nb)
             self.neighbours = acquire(Neighbours, capacity, p.capacity)
-            ck.neighbour_margins(p, self.neighbours, half_skin, h)
+            ck.neighbour_margins(p, self.neighbours, self._half_skin, h)
         nb.total[None] = total
         ck.neighbour_pass(p, self.grid, nb, half_alert, True)
         self._neighbours_valid = True
@@ -528,8 +531,6 @@ class Simulation:
         else:
             gaps = np.zeros(0)
         b = len(pairs)
-        # bonded pairs leave the contact list: refit its buffer to what the next step needs
-        self._refit_contacts = b > 0
         self._set_bond_arrays({
             "i": pairs[:, 0].astype(np.int32), "j": pairs[:, 1].astype(np.int32),
             "g0": gaps, "created": np.full(b, self.time),
@@ -570,6 +571,9 @@ class Simulation:
     def _set_bond_arrays(self, a: dict) -> None:
         """Install a bond set given as arrays (missing state arrays take their defaults)."""
         b = len(a["i"])
+        # bonded pairs leave the contact list: after the next step its buffer (sized for an
+        # unbonded sample, or for a batch's histories) is refitted to what the step needed
+        self._refit_contacts = b > 0
         release(self.bonds)
         bd = acquire(Bonds, max(b, 1), self.particles.capacity, b > 0 and self.settings.bond_blocks)
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
@@ -648,10 +652,6 @@ class Simulation:
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
         self._set_bond_arrays(bonds)
-        # bonded pairs are not contacts: after the next step the buffer (sized for an unbonded
-        # sample, or for a batch's histories) is refitted to the contacts, as after create_bonds
-        if len(bonds["i"]):
-            self._refit_contacts = True
         # the wall forces of the last step: a servo plate reads them before the next step
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
         if len(force) == len(self.walls):
