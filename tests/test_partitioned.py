@@ -66,11 +66,10 @@ def test_same_parts_same_numbers_and_lists_are_sound(threads):
     pt, n = a.partition, a.n
     part = pt.part.to_numpy()[:n]
     assert part.min() == 0 and part.max() == threads - 1
-    # slabs across the longest extent of the centres
+    # slabs across one axis: ordered along it, one slab after the other
     x = a.positions()
-    axis = np.argmax(x.max(axis=0) - x.min(axis=0))
-    z = x[:, axis]
-    assert all(z[part == k].max() <= z[part == k + 1].min() for k in range(threads - 1))
+    assert any(all(x[part == k, ax].max() <= x[part == k + 1, ax].min()
+                   for k in range(threads - 1)) for ax in range(3))
     cstart = pt.cstart.to_numpy()[: threads + 2]
     order = pt.corder.to_numpy()[: cstart[-1]]
     c = a.contact_arrays()
@@ -85,6 +84,39 @@ def test_same_parts_same_numbers_and_lists_are_sound(threads):
     assert np.all((j < n) & (part[i] != part[np.minimum(j, n - 1)]))
     a.close()
     b.close()
+
+
+def alternations(part):
+    return int(np.count_nonzero(part[1:] != part[:-1]))
+
+
+def test_slabs_are_cut_across_the_axis_where_they_alternate_least_in_memory():
+    """A flat bed 20 x 4 x 3 spheres, numbered layer by layer (z slowest): its longest extent
+    is x, but slabs across x would alternate twice per row of 20 (two threads writing the same
+    cache lines: false sharing), while slabs across z are contiguous in memory. The schedule
+    picks z, with one alternation of the particles and every list still sound."""
+    d = 0.004
+    ix, iy, iz = np.meshgrid(np.arange(20), np.arange(4), np.arange(3), indexing="ij")
+    order = np.lexsort((ix.ravel(), iy.ravel(), iz.ravel()))      # z slowest, then y, then x
+    x = (np.stack([ix.ravel(), iy.ravel(), iz.ravel()], axis=1)[order] + 0.5) * d
+    r = np.full(len(x), 0.5 * d)
+    wl = [walls.plane((0, 0, 0), (0, 0, 1))]
+    sim = Simulation(r, x, walls=wl, settings=SolverSettings(schedule="partitioned", threads=2),
+                     domain=((0, 0, 0), (20 * d, 4 * d, 3 * d)))
+    sim.step()
+    n = sim.n
+    part = sim.partition.part.to_numpy()[:n]
+    assert part.min() == 0 and part.max() == 1
+    z = sim.positions()[:, 2]
+    assert z[part == 0].max() < z[part == 1].min()               # slabs across z
+    assert alternations(part) == 1
+    # across the longest extent (x, the earlier rule) the slabs alternate twice per row
+    xs = sim.positions()[:, 0]
+    assert alternations((xs > np.median(xs)).astype(int)) > 20
+    cstart = sim.partition.cstart.to_numpy()[:4]
+    c = sim.contact_arrays()
+    assert cstart[-1] == len(c["i"]) and cstart[0] < cstart[1] < cstart[2]
+    sim.close()
 
 
 def test_numbers_do_not_depend_on_the_number_of_threads(tmp_path, backend):
