@@ -401,7 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
     _backend_options(b, default_arch="cpu", default_precision="f64")
     b.add_argument("--tolerance", type=_positive_float, default=1e-4)
     _schedule_options(b)
-    b.add_argument("--out", default="renders/scaling", metavar="DIR")
+    b.add_argument("--out", default="renders/scaling", metavar="PREFIX",
+                   help="writes PREFIX.csv and PREFIX.png (default renders/scaling)")
     b.add_argument("--json", action="store_true", help="print JSON instead of a table")
     b.set_defaults(handler=cmd_bench)
     return parser

@@ -1,8 +1,10 @@
 """The serial Gauss-Seidel split over P CPU threads (schedule "partitioned").
 
-The particles are split into P slabs of about equal work across the longest extent of their
-centres, cut anew every step (a slab boundary is crossed by a layer of items about one grain
-thick, whatever the particle numbering). An item -- a contact, or a bond item (a particle's
+The particles are split into P slabs of about equal work across one axis of the sample, cut
+anew every step (a slab boundary is crossed by a layer of items about one grain thick, whatever
+the particle numbering). The axis is the one along which the slabs alternate least in memory
+(`interleaving`): a slab's thread writes its bodies and contacts during a sweep, and where two
+slabs' records share a cache line the two threads stall each other (false sharing). An item -- a contact, or a bond item (a particle's
 bond block, or a single bond) -- whose dynamic bodies all lie in slab k is interior to k; the
 others are boundary items. One sweep is: the P interior lists at once
 (unit k: slab k's bond items, then its contacts), then, on one thread, the boundary list
