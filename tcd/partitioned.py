@@ -4,13 +4,15 @@ The particles are split into P slabs of about equal work across one axis of the 
 anew every step (a slab boundary is crossed by a layer of items about one grain thick, whatever
 the particle numbering). The axis is the one along which the slabs alternate least in memory
 (`interleaving`): a slab's thread writes its bodies and contacts during a sweep, and where two
-slabs' records share a cache line the two threads stall each other (false sharing). An item -- a contact, or a bond item (a particle's
-bond block, or a single bond) -- whose dynamic bodies all lie in slab k is interior to k; the
-others are boundary items. One sweep is: the P interior lists at once
-(unit k: slab k's bond items, then its contacts), then, on one thread, the boundary list
-(bond items, then contacts); then the bonds' changes in P units at once; then, on one thread,
-the convergence test and the conjugate-gradient (NNCG) momentum of the boundary bonds and
-contacts; the momentum of the interior bonds and contacts opens the next sweep's units. Forward and backward sweeps alternate inside every list, as in `solver.nlgs_serial`.
+slabs' records share a cache line the two threads stall each other (false sharing). An item
+-- a contact, or a bond item (a particle's bond block, or a single bond) -- whose dynamic
+bodies all lie in slab k is interior to k; the others are boundary items. One sweep is: the
+P interior lists at once (unit k: slab k's bond items, then its contacts), then, on one
+thread, the boundary list (bond items, then contacts); then the bonds' changes in P units at
+once; then, on one thread, the convergence test and the conjugate-gradient (NNCG) momentum of
+the boundary bonds and contacts; the momentum of the interior bonds and contacts opens the
+next sweep's units. Forward and backward sweeps alternate inside every list, as in
+`solver.nlgs_serial`.
 Two interior lists share no dynamic body, so running them at once gives exactly the numbers of
 running them one after the other: the result depends on P (it fixes the visiting order), never
 on thread timing or on how many threads Taichi really has. Same scenario, same P, same numbers.
@@ -134,8 +136,7 @@ def cut_slabs(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.tem
 
 
 @ti.func
-def interleaving(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.template(),
-                 parts):
+def interleaving(p: ti.template(), ct: ti.template(), pt: ti.template(), parts):
     """How often two slabs alternate along memory: consecutive particles in two slabs, and
     along the contacts (canonical order), consecutive interior contacts of two slabs
     (boundary items are swept while the other threads wait: they do not count; bonds and
@@ -188,18 +189,21 @@ def partition_items(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: 
             if hi[a] - lo[a] > hi[longest] - lo[longest]:
                 longest = a
         axis = longest
+        cut = -1                   # the axis pt.part was last cut across
         if parts > 1:
             best = -1
             for t in range(3):
                 a = (longest + t) % 3
                 if hi[a] - lo[a] > 0.0:
                     cut_slabs(p, ct, bd, pt, a, lo[a], hi[a] - lo[a], parts, blocks)
-                    cost = interleaving(p, ct, bd, pt, parts)
+                    cut = a
+                    cost = interleaving(p, ct, pt, parts)
                     if best < 0 or cost < best:
                         best = cost
                         axis = a
-        cut_slabs(p, ct, bd, pt, axis, lo[axis], ti.max(hi[axis] - lo[axis], 1e-12), parts,
-                  blocks)
+        if cut != axis:
+            cut_slabs(p, ct, bd, pt, axis, lo[axis], ti.max(hi[axis] - lo[axis], 1e-12), parts,
+                      blocks)
         for c in range(parts + 2):
             pt.bstart[c] = 0
             pt.cstart[c] = 0
