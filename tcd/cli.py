@@ -187,6 +187,21 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    path = _existing_file(args.file)
+    frames = _frames(args.frames)
+    parts = [q.strip() for q in args.parts.split(",") if q.strip()]
+    from .export import export
+    try:
+        written = export(path, args.out, frames="all" if frames is None else frames, parts=parts)
+    except OSError as exc:          # h5py reports unreadable files as OSError
+        raise UsageError(f"{path}: cannot read: {exc}") from None
+    pvd = [str(w) for w in written if w.suffix == ".pvd"]
+    print(f"wrote {len(written) - len(pvd)} VTK files into {args.out}; open in ParaView: "
+          + ", ".join(pvd))
+    return 0
+
+
 def cmd_figures(args) -> int:
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
@@ -360,6 +375,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=_positive_float, default=10.0, help="animation frame rate")
     _backend_options(p, default_arch="cpu", default_precision="f64")
     p.set_defaults(handler=cmd_render)
+
+    p = sub.add_parser("export", help="export snapshots to VTK files (.vtu + .pvd) for "
+                                      "ParaView, VisIt or PyVista",
+                       description="Write one .vtu file per part and frame (particles, "
+                                   "contact and bond lines, wall surfaces) and one .pvd time "
+                                   "series per part. FILE.h5: a states file, a prepared sample "
+                                   "or a checkpoint. Arrays: see tcd/export.py.")
+    p.add_argument("file", metavar="FILE.h5")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    p.add_argument("--frames", metavar="all|K,K,...", help="frames to export (default all; "
+                   "negative indices count from the end)")
+    p.add_argument("--parts", default="particles,contacts,bonds,walls", metavar="P,P,...",
+                   help="any of particles, contacts, bonds, walls (default all four)")
+    p.set_defaults(handler=cmd_export)
 
     p = sub.add_parser("figures", help="make the report figures of a run directory")
     p.add_argument("run_dir", metavar="RUN_DIR")

@@ -1,0 +1,255 @@
+"""Snapshots exported to VTK XML files for ParaView, VisIt or PyVista (meshio writes them).
+
+`tcd export FILE.h5 --out DIR` turns every frame of a states file (or the one state of a
+prepared sample or checkpoint) into one unstructured-grid file (.vtu) per part and frame, and one
+ParaView collection (.pvd) per part that lists the frames with their simulated times, so that
+opening `<stem>_particles.pvd` gives a time series:
+
+  particles  one point per sphere (vertex cells). Point data: `radius` and `diameter` (m; scale a
+             Glyph filter's spheres by `diameter` with scale factor 1 to draw the true sizes),
+             `velocity` (m/s), `speed`, `angular_velocity` (rad/s), `layer`, `id` (the index
+             used by contacts and bonds).
+  contacts   one line per particle-particle contact, between the two centres (the same points as
+             the particles, so contact and particle files overlay). Cell data: `impulse` (N s,
+             the impulse on the second particle over the last step, global frame),
+             `normal_impulse` (along the line of centres, > 0 in compression),
+             `tangential_impulse` (its magnitude), `gap` (m), and, when the time step H is
+             known (a states file keeps its scenario), `normal_force` = normal_impulse / H (N):
+             colour and scale the tubes by it to see the force chains. Contacts with walls are
+             not drawn: their sum is the wall's force.
+  bonds      one line per bond. Cell data: `state` (0 intact, 1 broken in tension, 2 broken in
+             shear), `intact` (1/0), `impulse`, `normal_impulse`, `normal_force` as for contacts.
+  walls      planes as discs (radius `walls/radius`) and cylinders as shells over their axial
+             extent, triangulated. Cell data: `wall` (index), `kind` (0 plane, 1 cylinder),
+             `force` (N, the force the particles exert on that wall).
+
+Every file is written atomically (io.atomic_path), the collections last: an interrupted export
+leaves complete files only. Nothing is computed that is not in the file except the derived
+quantities named above.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from . import io
+
+PARTS = ("particles", "contacts", "bonds", "walls")
+WALL_SEGMENTS = 48
+
+
+# --- reading ---------------------------------------------------------------------------------
+def _kind(path) -> str:
+    with io._open_tcd(path, None) as f:
+        return io._file_kind(f)
+
+
+def _time_step(scenario_text: str) -> float | None:
+    """H of the scenario stored in a states file (the config default when [solver] omits it);
+    None when there is no scenario text or it does not parse."""
+    if not scenario_text:
+        return None
+    try:
+        solver = tomllib.loads(scenario_text).get("solver", {})
+    except tomllib.TOMLDecodeError:
+        return None
+    if "time_step" in solver:
+        return float(solver["time_step"])
+    from .config import SolverConfig
+    return float(SolverConfig.model_fields["time_step"].default)
+
+
+def load_states(path, frames="all") -> tuple[list[dict], float | None]:
+    """The frames to export (flat dicts as io.read_frame gives them) and the time step H (None if
+    unknown). A checkpoint or prepared sample gives its single state as frame 0."""
+    path = os.fspath(path)
+    kind = _kind(path)
+    if kind == io.FILE_STATES:
+        count = io.frame_count(path)
+        if isinstance(frames, str):
+            if frames != "all":
+                raise ValueError(f"frames={frames!r}: expected 'all' or a list of frame indices")
+            indices = list(range(count))
+        else:
+            indices = []
+            for k in frames:
+                kk = int(k) + count if int(k) < 0 else int(k)
+                if not 0 <= kk < count:
+                    raise ValueError(f"{path}: frame index {k} out of range ({count} frames)")
+                indices.append(kk)
+        import h5py
+        with h5py.File(path, "r") as f:
+            text = f.attrs.get("scenario", "")
+            text = text.decode() if isinstance(text, bytes) else str(text)
+        out = []
+        for k in indices:
+            frame = io.read_frame(path, k)
+            frame["index"] = k
+            out.append(frame)
+        return out, _time_step(text)
+    if kind == io.FILE_CHECKPOINT:
+        if not (isinstance(frames, str) and frames == "all") and list(frames) not in ([0], [-1]):
+            raise ValueError(f"{path}: a checkpoint holds one state (frame 0), got frames {frames}")
+        arrays, meta = io.load_checkpoint(path)
+        frame = {k: v for k, v in arrays.items() if k.split("/")[0] in io.GROUP_SIZE_SYMBOL}
+        if "particles/x" not in frame:
+            raise ValueError(f"{path}: checkpoint without particles/x")
+        # a checkpoint's contact list may hold unused capacity past its `start` table's end
+        if "contacts/start" in frame and "contacts/i" in frame:
+            m = int(frame["contacts/start"][-1])
+            for key in [k for k in frame if k.startswith("contacts/")]:
+                if key != "contacts/start":
+                    frame[key] = frame[key][:m]
+        frame.update(time=float(meta.get("time", 0.0)), step=int(meta.get("step", 0)),
+                     stage=str(meta.get("stage", "")), index=0)
+        return [frame], None
+    raise ValueError(f"{path}: a tcd {kind} file holds no particle states (expected a states "
+                     f"file, a prepared sample or a checkpoint)")
+
+
+# --- meshes ----------------------------------------------------------------------------------
+def _pair_data(frame, group, h):
+    """Line cells between particle centres and their cell data, for `group` (contacts or bonds):
+    pairs whose j is a wall are dropped."""
+    x = np.asarray(frame["particles/x"])
+    n = len(x)
+    i = np.asarray(frame.get(f"{group}/i", np.zeros(0, np.int32)), dtype=np.int64)
+    j = np.asarray(frame.get(f"{group}/j", np.zeros(0, np.int32)), dtype=np.int64)
+    # bonds join particles; a contact's j may also be a wall (j - N)
+    walls = len(frame["walls/kind"]) if "walls/kind" in frame else np.iinfo(np.int32).max
+    limit = n if group == "bonds" else n + walls
+    if len(i) and (i.min() < 0 or i.max() >= n or j.min() < 0 or j.max() >= limit):
+        raise ValueError(f"{group}/i or {group}/j refer to bodies that do not exist "
+                         f"({n} particles, {0 if group == 'bonds' else walls} walls)")
+    keep = j < n
+    i, j = i[keep], j[keep]
+    imp = np.asarray(frame.get(f"{group}/impulse", np.zeros((len(keep), 3))))[keep]
+    d = x[j] - x[i]
+    length = np.linalg.norm(d, axis=1)
+    normal = d / np.where(length > 0, length, 1.0)[:, None]
+    rn = np.einsum("ij,ij->i", imp, normal)
+    rt = np.linalg.norm(imp - rn[:, None] * normal, axis=1)
+    data = {"impulse": imp, "normal_impulse": rn}
+    if group == "contacts":
+        data["tangential_impulse"] = rt
+        if "contacts/gap" in frame:
+            data["gap"] = np.asarray(frame["contacts/gap"])[keep]
+    else:
+        state = np.asarray(frame.get("bonds/state", np.zeros(len(keep), np.int8)))[keep]
+        data["state"] = state.astype(np.int32)
+        data["intact"] = (state == io.BOND_INTACT).astype(np.int32)
+    if h is not None:
+        data["normal_force"] = rn / h
+    return np.stack([i, j], axis=1), data
+
+
+def _wall_mesh(frame):
+    """Triangles of every wall (disc or cylinder shell) with per-cell wall index, kind, force."""
+    kinds = np.asarray(frame.get("walls/kind", np.zeros(0, np.int32)))
+    pts, tris, wall, kind, force = [], [], [], [], []
+    base = 0
+    phi = np.linspace(0.0, 2.0 * math.pi, WALL_SEGMENTS, endpoint=False)
+    for w in range(len(kinds)):
+        p = np.asarray(frame["walls/point"][w], dtype=float)
+        a = np.asarray(frame["walls/direction"][w], dtype=float)
+        a = a / np.linalg.norm(a)
+        r = float(frame["walls/radius"][w])
+        # two unit vectors across the axis
+        helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = np.cross(a, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(a, e1)
+        ring = r * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        s = WALL_SEGMENTS
+        if kinds[w] == io.WALL_CYLINDER:
+            lo, hi = (float(v) for v in frame["walls/extent"][w])
+            pts += [p + lo * a + ring, p + hi * a + ring]
+            k = np.arange(s)
+            k1 = (k + 1) % s
+            cells = np.concatenate([np.stack([k, k1, s + k1], 1), np.stack([k, s + k1, s + k], 1)])
+            count = 2 * s
+        else:
+            pts += [p[None, :], p + ring]
+            k = np.arange(s)
+            cells = np.stack([np.zeros(s, int), 1 + k, 1 + (k + 1) % s], 1)
+            count = s
+        tris.append(cells + base)
+        base += sum(len(q) for q in pts[-2:])
+        wall += [w] * count
+        kind += [int(kinds[w])] * count
+        f = np.asarray(frame["walls/force"][w], dtype=float) if "walls/force" in frame else np.zeros(3)
+        force += [f] * count
+    if not tris:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), {}
+    data = {"wall": np.asarray(wall, np.int32), "kind": np.asarray(kind, np.int32),
+            "force": np.asarray(force)}
+    return np.concatenate(pts), np.concatenate(tris).astype(np.int64), data
+
+
+def _mesh(frame, part, h):
+    import meshio
+    x = np.asarray(frame["particles/x"])
+    n = len(x)
+    if part == "particles":
+        v = np.asarray(frame.get("particles/v", np.zeros_like(x)))
+        r = np.asarray(frame.get("particles/radius", np.zeros(n)))
+        data = {"radius": r, "diameter": 2.0 * r, "velocity": v,
+                "speed": np.linalg.norm(v, axis=1),
+                "angular_velocity": np.asarray(frame.get("particles/w", np.zeros_like(x))),
+                "layer": np.asarray(frame.get("particles/layer", np.zeros(n, np.int32)), np.int32),
+                "id": np.arange(n, dtype=np.int64)}
+        return meshio.Mesh(x, [("vertex", np.arange(n, dtype=np.int64)[:, None])],
+                           point_data=data)
+    if part in ("contacts", "bonds"):
+        lines, data = _pair_data(frame, part, h)
+        return meshio.Mesh(x, [("line", lines)], cell_data={k: [v] for k, v in data.items()})
+    points, tris, data = _wall_mesh(frame)
+    return meshio.Mesh(points, [("triangle", tris)], cell_data={k: [v] for k, v in data.items()})
+
+
+# --- writing ---------------------------------------------------------------------------------
+def _pvd(entries) -> str:
+    rows = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(name)}/>'
+                     for t, name in entries)
+    return ('<?xml version="1.0"?>\n'
+            '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
+            f'  <Collection>\n{rows}\n  </Collection>\n</VTKFile>\n')
+
+
+def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = None) -> list[Path]:
+    """Write the VTK files of `frames` of `path` into `out_dir` (created); return their paths,
+    collections last. `parts`: any of particles, contacts, bonds, walls."""
+    import meshio
+    parts = tuple(parts)
+    unknown = [p for p in parts if p not in PARTS]
+    if unknown or not parts:
+        raise ValueError(f"parts {', '.join(unknown) or '(none)'}: expected some of "
+                         f"{', '.join(PARTS)}")
+    states, h = load_states(path, frames)
+    if not states:
+        raise ValueError(f"{path}: no frames to export")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir}: exists and is not a directory")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = prefix or Path(path).stem
+    written, collections = [], {p: [] for p in parts}
+    for frame in states:
+        for part in parts:
+            name = f"{stem}_{part}_{frame['index']:06d}.vtu"
+            mesh = _mesh(frame, part, h)
+            with io.atomic_path(out_dir / name) as tmp:
+                meshio.write(tmp, mesh, file_format="vtu")
+            written.append(out_dir / name)
+            collections[part].append((float(frame["time"]), name))
+    for part, entries in collections.items():
+        target = out_dir / f"{stem}_{part}.pvd"
+        with io.atomic_path(target) as tmp:
+            Path(tmp).write_text(_pvd(entries))
+        written.append(target)
+    return written

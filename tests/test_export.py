@@ -1,0 +1,213 @@
+"""`tcd export`: states, prepared samples and checkpoints to VTK (.vtu per part and frame, .pvd
+time series). The files are read back with meshio (and parsed as XML where meshio's reader does
+not cope: an empty cell block) and compared with the arrays they came from."""
+import math
+import xml.etree.ElementTree as ET
+
+import meshio
+import numpy as np
+import pytest
+
+from tcd import cli, export, io
+
+H = 1e-3
+SCENARIO = f'name = "t"\n[solver]\ntime_step = {H}\n'
+
+
+def frame(shift=0.0, bonds_state=(0, 1)):
+    """Three spheres along x touching in a row, a fourth apart; a floor and a mould."""
+    x = np.array([[0.0, 0, 0.01], [0.02, 0, 0.01], [0.04, 0, 0.01], [0.0, 0.03, 0.01]]) + shift
+    return {
+        "particles/x": x,
+        "particles/v": np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 0], [3.0, 4.0, 0]]),
+        "particles/w": np.zeros((4, 3)),
+        "particles/radius": np.array([0.01, 0.01, 0.01, 0.005]),
+        "particles/layer": np.array([0, 0, 1, 1], np.int32),
+        "walls/kind": np.array([io.WALL_PLANE, io.WALL_CYLINDER], np.int32),
+        "walls/point": np.zeros((2, 3)),
+        "walls/direction": np.array([[0, 0, 1.0], [0, 0, 1.0]]),
+        "walls/radius": np.array([0.05, 0.06]),
+        "walls/extent": np.array([[0.0, 0.0], [0.0, 0.1]]),
+        "walls/force": np.array([[0, 0, -7.0], [1.0, 0, 0]]),
+        # contact 0-1 (compressive 2 N s along x, 1 N s tangent), 1-2, and 2 with wall 0 (j = N)
+        "contacts/i": np.array([0, 1, 2], np.int32),
+        "contacts/j": np.array([1, 2, 4], np.int32),
+        "contacts/impulse": np.array([[2.0, 1.0, 0], [-0.5, 0, 0], [0, 0, 9.0]]),
+        "contacts/gap": np.array([0.0, -1e-6, 0.0]),
+        "bonds/i": np.array([0, 1], np.int32),
+        "bonds/j": np.array([3, 2], np.int32),
+        "bonds/state": np.array(bonds_state, np.int8),
+        "bonds/impulse": np.array([[0, 3.0, 0], [1.0, 0, 0]]),
+    }
+
+
+@pytest.fixture
+def states(tmp_path):
+    path = tmp_path / "states.h5"
+    io.append_frame(path, frame(), time=0.5, step=10, stage="prepare", scenario_text=SCENARIO)
+    io.append_frame(path, frame(0.001, (2, 0)), time=0.75, step=20, stage="shear")
+    return path
+
+
+def test_particles_are_points_with_their_arrays(states, tmp_path):
+    written = export.export(states, tmp_path / "vtk")
+    assert [w.name for w in written[-4:]] == [f"states_{p}.pvd" for p in export.PARTS]
+    f = frame()
+    m = meshio.read(tmp_path / "vtk" / "states_particles_000000.vtu")
+    np.testing.assert_array_equal(m.points, f["particles/x"])
+    np.testing.assert_array_equal(m.cells_dict["vertex"].ravel(), np.arange(4))
+    np.testing.assert_array_equal(m.point_data["radius"], f["particles/radius"])
+    np.testing.assert_array_equal(m.point_data["diameter"], 2 * f["particles/radius"])
+    np.testing.assert_array_equal(m.point_data["velocity"], f["particles/v"])
+    np.testing.assert_allclose(m.point_data["speed"], [1.0, 2.0, 0.0, 5.0])
+    np.testing.assert_array_equal(m.point_data["layer"], [0, 0, 1, 1])
+    second = meshio.read(tmp_path / "vtk" / "states_particles_000001.vtu")
+    np.testing.assert_array_equal(second.points, f["particles/x"] + 0.001)
+
+
+def test_contacts_are_lines_between_particles_with_normal_and_tangential_impulse(states, tmp_path):
+    export.export(states, tmp_path / "vtk", frames=[0])
+    m = meshio.read(tmp_path / "vtk" / "states_contacts_000000.vtu")
+    # the contact with the floor (j = N) is not a line
+    np.testing.assert_array_equal(m.cells_dict["line"], [[0, 1], [1, 2]])
+    cd = {k: v[0] for k, v in m.cell_data.items()}
+    np.testing.assert_allclose(cd["normal_impulse"], [2.0, -0.5])
+    np.testing.assert_allclose(cd["tangential_impulse"], [1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(cd["normal_force"], [2.0 / H, -0.5 / H])
+    np.testing.assert_array_equal(cd["gap"], [0.0, -1e-6])
+    np.testing.assert_array_equal(cd["impulse"], frame()["contacts/impulse"][:2])
+
+
+def test_bonds_carry_state_and_impulse_per_frame(states, tmp_path):
+    export.export(states, tmp_path / "vtk")
+    for k, state in ((0, [0, 1]), (1, [2, 0])):
+        m = meshio.read(tmp_path / "vtk" / f"states_bonds_{k:06d}.vtu")
+        np.testing.assert_array_equal(m.cells_dict["line"], [[0, 3], [1, 2]])
+        np.testing.assert_array_equal(m.cell_data["state"][0], state)
+        np.testing.assert_array_equal(m.cell_data["intact"][0], [s == 0 for s in state])
+    # bond 0-3 lies along y, its impulse (0, 3, 0) is all normal; bond 1-2 along x
+    np.testing.assert_allclose(m.cell_data["normal_impulse"][0], [3.0, 1.0])
+    np.testing.assert_allclose(m.cell_data["normal_force"][0], [3.0 / H, 1.0 / H])
+
+
+def test_walls_are_a_disc_and_a_cylinder_shell_with_their_forces(states, tmp_path):
+    export.export(states, tmp_path / "vtk", frames=[-1], parts=["walls"])
+    m = meshio.read(tmp_path / "vtk" / "states_walls_000001.vtu")
+    tri = m.cells_dict["triangle"]
+    wall = m.cell_data["wall"][0]
+    s = export.WALL_SEGMENTS
+    assert np.count_nonzero(wall == 0) == s and np.count_nonzero(wall == 1) == 2 * s
+    disc = m.points[np.unique(tri[wall == 0])]
+    assert np.all(np.abs(disc[:, 2]) < 1e-15)
+    assert np.max(np.hypot(disc[:, 0], disc[:, 1])) == pytest.approx(0.05, rel=1e-12)
+    shell = m.points[np.unique(tri[wall == 1])]
+    np.testing.assert_allclose(np.hypot(shell[:, 0], shell[:, 1]), 0.06, rtol=1e-12)
+    assert sorted(set(np.round(shell[:, 2], 12))) == [0.0, 0.1]
+    # the shell's area is close to the cylinder's (inscribed polygon)
+    a, b, c = (m.points[tri[wall == 1][:, q]] for q in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+    assert area == pytest.approx(2 * math.pi * 0.06 * 0.1, rel=2e-3)
+    np.testing.assert_array_equal(m.cell_data["force"][0][wall == 0], np.tile([0, 0, -7.0], (s, 1)))
+    np.testing.assert_array_equal(m.cell_data["kind"][0][wall == 1], io.WALL_CYLINDER)
+
+
+def test_collections_list_the_frames_with_their_times(states, tmp_path):
+    export.export(states, tmp_path / "vtk", frames=[1, 0])
+    root = ET.parse(tmp_path / "vtk" / "states_particles.pvd").getroot()
+    assert root.get("type") == "Collection"
+    rows = [(float(d.get("timestep")), d.get("file")) for d in root.iter("DataSet")]
+    assert rows == [(0.75, "states_particles_000001.vtu"), (0.5, "states_particles_000000.vtu")]
+    for _, name in rows:
+        assert (tmp_path / "vtk" / name).is_file()
+
+
+def test_an_empty_part_is_a_valid_file_without_cells(tmp_path):
+    path = tmp_path / "states.h5"
+    f = {k: v for k, v in frame().items() if not k.startswith("bonds/")}
+    io.append_frame(path, f, time=0.0, step=0, stage="prepare")
+    export.export(path, tmp_path / "vtk", parts=["bonds"])
+    piece = ET.parse(tmp_path / "vtk" / "states_bonds_000000.vtu").getroot().find(".//Piece")
+    assert piece.get("NumberOfCells") == "0" and piece.get("NumberOfPoints") == "4"
+    # no scenario, no time step: impulses only, no forces
+    export.export(path, tmp_path / "vtk", parts=["contacts"])
+    m = meshio.read(tmp_path / "vtk" / "states_contacts_000000.vtu")
+    assert "normal_impulse" in m.cell_data and "normal_force" not in m.cell_data
+
+
+def test_a_prepared_sample_or_checkpoint_exports_its_one_state(tmp_path):
+    f = frame()
+    arrays = {k: v for k, v in f.items()}
+    arrays["particles/inv_mass"] = np.ones(4)
+    arrays["contacts/start"] = np.array([0, 1, 2, 3, 3], np.int32)
+    path = tmp_path / "prepared.h5"
+    io.save_checkpoint(path, arrays, {"time": 2.5, "walls": []})
+    written = export.export(path, tmp_path / "vtk", parts=["particles", "contacts"])
+    m = meshio.read(tmp_path / "vtk" / "prepared_particles_000000.vtu")
+    np.testing.assert_array_equal(m.points, f["particles/x"])
+    root = ET.parse(written[-2]).getroot()
+    assert [float(d.get("timestep")) for d in root.iter("DataSet")] == [2.5]
+    with pytest.raises(ValueError, match="one state"):
+        export.export(path, tmp_path / "vtk", frames=[1])
+
+
+def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path):
+    with pytest.raises(ValueError, match="frame index 5 out of range \\(2 frames\\)"):
+        export.export(states, tmp_path / "vtk", frames=[5])
+    with pytest.raises(ValueError, match="parts spheres"):
+        export.export(states, tmp_path / "vtk", parts=["spheres"])
+    series = tmp_path / "series.h5"
+    io.write_series(series, {"time": np.arange(3.0)})
+    with pytest.raises(ValueError, match="series file holds no particle states"):
+        export.export(series, tmp_path / "vtk")
+    with pytest.raises(FileNotFoundError):
+        export.export(tmp_path / "missing.h5", tmp_path / "vtk")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="not a directory"):
+        export.export(states, tmp_path / "file")
+    # io refuses to write such indices; a file edited by hand may still hold them
+    import h5py
+    bad = tmp_path / "bad.h5"
+    io.append_frame(bad, frame(), time=0.0, step=0, stage="x")
+    with h5py.File(bad, "a") as f:
+        f["frames/000000/bonds/j"][1] = 4           # a bond to body 4 (a wall): impossible
+        f["frames/000000/contacts/j"][2] = 6        # wall 2 of 2
+    with pytest.raises(ValueError, match="bonds/i or bonds/j .*4 particles, 0 walls"):
+        export.export(bad, tmp_path / "vtk2", parts=["bonds"])
+    with pytest.raises(ValueError, match="contacts/i or contacts/j .*4 particles, 2 walls"):
+        export.export(bad, tmp_path / "vtk2", parts=["contacts"])
+
+
+def test_an_interrupted_export_leaves_the_previous_files_whole(states, tmp_path, monkeypatch):
+    out = tmp_path / "vtk"
+    export.export(states, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    calls = {"n": 0}
+    real = meshio.write
+
+    def failing(path, mesh, **kw):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            real(path, mesh, **kw)      # a partial file in the temporary path, then a crash
+            raise KeyboardInterrupt
+        return real(path, mesh, **kw)
+
+    monkeypatch.setattr(meshio, "write", failing)
+    with pytest.raises(KeyboardInterrupt):
+        export.export(states, out, frames=[1, 0])
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert set(after) == set(before)            # no temporary file left behind
+    for name in ("states_particles.pvd", "states_bonds_000000.vtu", "states_walls_000000.vtu"):
+        assert after[name] == before[name]
+
+
+def test_cli_export(states, tmp_path, capsys):
+    assert cli.main(["export", str(states), "--out", str(tmp_path / "vtk"), "--frames", "-1",
+                     "--parts", "particles,bonds"]) == 0
+    out = capsys.readouterr().out
+    assert "wrote 2 VTK files" in out and "states_particles.pvd" in out
+    assert sorted(p.name for p in (tmp_path / "vtk").iterdir()) == [
+        "states_bonds.pvd", "states_bonds_000001.vtu",
+        "states_particles.pvd", "states_particles_000001.vtu"]
+    assert cli.main(["export", str(states), "--out", str(tmp_path / "v"), "--parts", "x"]) == 2
+    assert cli.main(["export", str(tmp_path / "none.h5"), "--out", str(tmp_path / "v")]) == 2
+    assert "none.h5: no such file" in capsys.readouterr().err
