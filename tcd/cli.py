@@ -202,6 +202,19 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_analyse(args) -> int:
+    path = _existing_file(args.file)
+    frames = _frames(args.frames)
+    from .analysis import analyse
+    try:
+        written = analyse(path, args.out, frames="all" if frames is None else frames,
+                          time_step=args.time_step)
+    except OSError as exc:          # h5py reports unreadable files as OSError
+        raise UsageError(f"{path}: cannot read: {exc}") from None
+    print("wrote " + ", ".join(written))
+    return 0
+
+
 def cmd_figures(args) -> int:
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
@@ -389,6 +402,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--parts", default="particles,contacts,bonds,walls", metavar="P,P,...",
                    help="any of particles, contacts, bonds, walls (default all four)")
     p.set_defaults(handler=cmd_export)
+
+    p = sub.add_parser("analyse", help="contact network, fabric and mean grain stress of every "
+                                       "snapshot, as a series (.h5 and .csv)",
+                       description="One row per frame: contact and bond counts, coordination, "
+                                   "normal forces, the Love-Weber mean stress in the grains and "
+                                   "the fabric tensor (see tcd/analysis.py). FILE.h5: a states "
+                                   "file, a prepared sample or a checkpoint.")
+    p.add_argument("file", metavar="FILE.h5")
+    p.add_argument("--out", required=True, metavar="PREFIX",
+                   help="writes PREFIX.h5 and PREFIX.csv")
+    p.add_argument("--frames", metavar="all|K,K,...", help="frames (default all)")
+    p.add_argument("--time-step", type=_positive_float, metavar="H",
+                   help="time step (s) to turn impulses into forces, for a file without a "
+                        "scenario (a checkpoint or prepared sample)")
+    p.set_defaults(handler=cmd_analyse)
 
     p = sub.add_parser("figures", help="make the report figures of a run directory")
     p.add_argument("run_dir", metavar="RUN_DIR")

@@ -1,0 +1,159 @@
+"""Micromechanics of the snapshots: contact network, fabric and mean stress in the grains.
+
+`tcd analyse FILE.h5 --out PREFIX` reads every frame of a states file (or the one state of a
+prepared sample or checkpoint; see export.load_states) and writes one row per frame to
+PREFIX.h5 (a tcd series file, units on every dataset) and PREFIX.csv:
+
+  particles, contacts (particle pairs), wall_contacts, bonds_intact, bonds_broken
+  coordination_contacts = 2 contacts / particles; coordination_bonds = 2 bonds_intact / particles
+  normal_force_mean, normal_force_max (N): over the particle contacts in compression
+      (R.n > 0; n along the line of centres), force = impulse / H
+  stress_xx ... stress_xy (Pa): mean stress inside the grains, Love-Weber
+      sigma = 1 / sum(V_p) * sum_p sum_c (x_c - x_p) (x) f_c,
+      with the contacts and the intact bonds. For a pair (i, j) with impulse R on j over the
+      step, both grains together give -(x_j - x_i) (x) R / H wherever the contact point lies on
+      the line of centres; a wall contact gives r_i n (x) (-R / H), n from the grain's centre to
+      the wall. Tension is positive: a confined sample has negative diagonal terms. Multiply by
+      the packing fraction for the stress over the sample's volume. The symmetric part is
+      written (the antisymmetric part is the unbalanced torque, zero at equilibrium).
+  fabric_xx ... fabric_xy (1): (1 / M) sum n (x) n over the M particle pairs in contact or
+      bonded (trace 1; 1/3 on the diagonal for an isotropic network), and fabric_anisotropy,
+      its largest minus its smallest eigenvalue.
+
+Forces need the time step H, which a states file gives through its scenario; for a checkpoint
+(no scenario) give it with `--time-step` (otherwise the force and stress columns are left out).
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from . import io
+from .export import load_states
+
+COMPONENTS = (("xx", 0, 0), ("yy", 1, 1), ("zz", 2, 2), ("yz", 1, 2), ("xz", 0, 2), ("xy", 0, 1))
+
+
+def _pairs(frame, group):
+    """(i, j, R) of `group`, pairs between two particles only (bonds: intact ones only)."""
+    n = len(frame["particles/x"])
+    i = np.asarray(frame.get(f"{group}/i", np.zeros(0, np.int32)), dtype=np.int64)
+    j = np.asarray(frame.get(f"{group}/j", np.zeros(0, np.int32)), dtype=np.int64)
+    imp = np.asarray(frame.get(f"{group}/impulse", np.zeros((len(i), 3))), dtype=float)
+    keep = j < n
+    if group == "bonds":
+        keep &= np.asarray(frame.get("bonds/state", np.zeros(len(i), np.int8))) == io.BOND_INTACT
+    return i[keep], j[keep], imp[keep]
+
+
+def wall_normals(frame, i, w):
+    """Unit vectors from grain i's centre toward wall w (plane: against its normal; cylinder:
+    radially outward from its axis)."""
+    x = np.asarray(frame["particles/x"], dtype=float)[i]
+    kind = np.asarray(frame["walls/kind"])[w]
+    point = np.asarray(frame["walls/point"], dtype=float)[w]
+    d = np.asarray(frame["walls/direction"], dtype=float)[w]
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    rel = x - point
+    radial = rel - np.einsum("ij,ij->i", rel, d)[:, None] * d
+    length = np.linalg.norm(radial, axis=1, keepdims=True)
+    radial = radial / np.where(length > 0, length, 1.0)
+    return np.where((kind == io.WALL_CYLINDER)[:, None], radial, -d)
+
+
+def grain_stress(frame, h: float) -> np.ndarray:
+    """Mean stress tensor inside the grains (Pa, 3x3, not symmetrised), Love-Weber."""
+    x = np.asarray(frame["particles/x"], dtype=float)
+    r = np.asarray(frame["particles/radius"], dtype=float)
+    n = len(x)
+    s = np.zeros((3, 3))
+    for group in ("contacts", "bonds"):
+        i, j, imp = _pairs(frame, group)
+        s -= np.einsum("ki,kj->ij", x[j] - x[i], imp)
+    i = np.asarray(frame.get("contacts/i", np.zeros(0, np.int32)), dtype=np.int64)
+    j = np.asarray(frame.get("contacts/j", np.zeros(0, np.int32)), dtype=np.int64)
+    on_wall = j >= n
+    if np.any(on_wall):
+        iw, w = i[on_wall], j[on_wall] - n
+        imp = np.asarray(frame["contacts/impulse"], dtype=float)[on_wall]
+        lever = r[iw, None] * wall_normals(frame, iw, w)
+        s -= np.einsum("ki,kj->ij", lever, imp)
+    return s / (h * float(np.sum(4.0 / 3.0 * math.pi * r**3)))
+
+
+def fabric(frame) -> np.ndarray:
+    """(1 / M) sum n (x) n over the particle pairs in contact or bonded (3x3, trace 1; zeros
+    when there is none)."""
+    x = np.asarray(frame["particles/x"], dtype=float)
+    branches = []
+    for group in ("contacts", "bonds"):
+        i, j, _ = _pairs(frame, group)
+        branches.append(x[j] - x[i])
+    b = np.concatenate(branches)
+    length = np.linalg.norm(b, axis=1)
+    b = b[length > 0] / length[length > 0, None]
+    if not len(b):
+        return np.zeros((3, 3))
+    return np.einsum("ki,kj->ij", b, b) / len(b)
+
+
+def frame_row(frame, h: float | None) -> dict:
+    x = np.asarray(frame["particles/x"], dtype=float)
+    n = len(x)
+    ci, cj, cimp = _pairs(frame, "contacts")
+    bi, _, _ = _pairs(frame, "bonds")
+    state = np.asarray(frame.get("bonds/state", np.zeros(0, np.int8)))
+    wall_contacts = int(np.count_nonzero(np.asarray(frame.get("contacts/j", [])) >= n))
+    row = {"time": float(frame["time"]), "step": int(frame["step"]), "particles": n,
+           "contacts": len(ci), "wall_contacts": wall_contacts, "bonds_intact": len(bi),
+           "bonds_broken": int(np.count_nonzero(state != io.BOND_INTACT)),
+           "coordination_contacts": 2.0 * len(ci) / n if n else 0.0,
+           "coordination_bonds": 2.0 * len(bi) / n if n else 0.0}
+    if h is not None:
+        d = x[cj] - x[ci]
+        length = np.linalg.norm(d, axis=1)
+        rn = np.einsum("ij,ij->i", cimp, d / np.where(length > 0, length, 1.0)[:, None]) / h
+        pressed = rn[rn > 0]
+        row["normal_force_mean"] = float(pressed.mean()) if len(pressed) else 0.0
+        row["normal_force_max"] = float(pressed.max()) if len(pressed) else 0.0
+        s = grain_stress(frame, h)
+        s = 0.5 * (s + s.T)
+        for name, a, b in COMPONENTS:
+            row[f"stress_{name}"] = float(s[a, b])
+    f = fabric(frame)
+    for name, a, b in COMPONENTS:
+        row[f"fabric_{name}"] = float(f[a, b])
+    eig = np.linalg.eigvalsh(f)
+    row["fabric_anisotropy"] = float(eig[-1] - eig[0])
+    return row
+
+
+UNITS = {"time": "s", "normal_force_mean": "N", "normal_force_max": "N",
+         **{f"stress_{name}": "Pa" for name, _, _ in COMPONENTS}}
+
+
+def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -> list[str]:
+    """Write PREFIX.h5 and PREFIX.csv (one row per frame); return their paths."""
+    if time_step is not None and not (time_step > 0 and math.isfinite(time_step)):
+        raise ValueError(f"time step {time_step!r}: expected a positive number of seconds")
+    states, h = load_states(path, frames)
+    if time_step is not None:
+        h = float(time_step)
+    if not states:
+        raise ValueError(f"{path}: no frames to analyse")
+    rows = [frame_row(frame, h) for frame in states]
+    series = {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
+    series["frame"] = np.asarray([frame["index"] for frame in states], np.int64)
+    keys = ["frame"] + list(rows[0])
+    series = {k: series[k] for k in keys}
+    prefix = os.fspath(out_prefix)
+    directory = os.path.dirname(os.path.abspath(prefix))
+    if not os.path.isdir(directory):
+        raise ValueError(f"{prefix}: directory {directory} does not exist")
+    h5, csv = prefix + ".h5", prefix + ".csv"
+    io.write_series(h5, series, units=UNITS, csv_path=csv,
+                    attrs={"source": os.fspath(path), "time_step": h if h is not None else "unknown",
+                           "stages": [str(frame["stage"]) for frame in states]})
+    return [h5, csv]
