@@ -14,6 +14,10 @@ PRECISIONS = ("f64", "f32")
 _state = {"arch": None, "precision": None}
 
 
+class BackendUnavailable(RuntimeError):
+    """The backend asked for is not on this machine (arch='gpu' without a GPU)."""
+
+
 def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
          cpu_threads: int | None = None) -> None:
     """Initialise Taichi for `arch` ("cpu" or "gpu") and `precision` ("f64" or "f32").
@@ -35,13 +39,38 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
                 f" cannot switch to arch={arch}, precision={precision} in the same process")
         return
     fp = ti.f64 if precision == "f64" else ti.f32
-    ti_arch = ti.cpu if arch == "cpu" else ti.gpu
+    ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": int(cpu_threads)}
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, **extra)
     _state["arch"], _state["precision"] = arch, precision
-    if arch == "gpu" and ti.lang.impl.current_cfg().arch == ti.cpu:
-        raise RuntimeError("arch='gpu' requested but Taichi found no GPU backend")
+
+
+# GPU backends tried, in order, for arch="gpu". Not OpenGL: Taichi 1.7.4's probe of it
+# crashes the process (segmentation fault) on a machine without a display or GPU, which is
+# what `ti.init(arch=ti.gpu)` does when no CUDA, Metal or Vulkan device is found; and OpenGL
+# has no f64.
+GPU_ARCHS = ("cuda", "vulkan", "metal", "amdgpu")
+
+
+def gpu_arch():
+    """The first GPU backend of GPU_ARCHS that Taichi finds on this machine; BackendUnavailable
+    naming those tried when there is none (instead of Taichi's silent fall back to the CPU,
+    or its crash while probing OpenGL)."""
+    from taichi.lang.misc import is_arch_supported
+    for name in GPU_ARCHS:
+        a = getattr(ti, name)
+        if is_arch_supported(a):
+            return a
+    raise BackendUnavailable("arch 'gpu' requested but Taichi found no GPU backend on this machine "
+                       f"(tried {', '.join(GPU_ARCHS)}); use arch='cpu'")
+
+
+def check_available(arch: str) -> None:
+    """Raise BackendUnavailable now if `arch` cannot run here (a run checks this before it
+    writes anything). Does not initialise Taichi."""
+    if arch == "gpu" and _state["arch"] != "gpu":
+        gpu_arch()
 
 
 def initialized() -> bool:

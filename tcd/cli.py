@@ -495,6 +495,11 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
     except (UsageError, ValueError, FileNotFoundError) as exc:
         return _error(exc)
+    except RuntimeError as exc:
+        from .backend import BackendUnavailable    # imported late: `tcd --help` stays instant
+        if isinstance(exc, BackendUnavailable):
+            return _error(exc)
+        raise
 
 
 if __name__ == "__main__":

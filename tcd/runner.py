@@ -113,6 +113,7 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
                 f"each other actively and must not share cores; use --jobs "
                 f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
+    backend.check_available(scenario.backend.arch)     # before anything is written
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out / "scenario.toml") as tmp:
         pathlib.Path(tmp).write_text(scenario.text)
@@ -175,6 +176,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     ck_path = out / "batch_checkpoint.h5"
     if resume and not ck_path.exists():
         raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
+    backend.check_available(scenario.backend.arch)     # before anything is written
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out / "scenario.toml") as tmp:
         pathlib.Path(tmp).write_text(scenario.text)

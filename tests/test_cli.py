@@ -315,3 +315,48 @@ def test_cli_and_config_import_no_heavy_module():
                          check=True, cwd=ROOT).stdout.splitlines()
     assert out[-2] == ""                 # the command's module: nothing until a handler runs
     assert out[-1] == "pydantic"         # the configuration: pydantic, not the solver
+
+
+def _gpu_present() -> bool:
+    from taichi.lang.misc import is_arch_supported
+    import taichi as ti
+    return any(is_arch_supported(getattr(ti, name)) for name in tcd.backend.GPU_ARCHS)
+
+
+def test_gpu_backend_search_never_probes_opengl(monkeypatch):
+    """arch='gpu' tries CUDA, Vulkan, Metal and AMDGPU in turn and never OpenGL (Taichi's probe
+    of OpenGL kills a headless process with a segmentation fault: `ti.init(arch=ti.gpu)` on a
+    machine without a GPU did); none found is a BackendUnavailable naming what was tried."""
+    import taichi as ti
+    import taichi.lang.misc as misc
+    probed = []
+
+    def supported_only(found):
+        def probe(arch):
+            probed.append(arch)
+            return arch in found
+        return probe
+    monkeypatch.setattr(misc, "is_arch_supported", supported_only({ti.vulkan}))
+    assert tcd.backend.gpu_arch() == ti.vulkan
+    assert probed == [ti.cuda, ti.vulkan]
+    probed.clear()
+    monkeypatch.setattr(misc, "is_arch_supported", supported_only(set()))
+    with pytest.raises(tcd.backend.BackendUnavailable, match="no GPU backend.*cuda, vulkan, metal, amdgpu"):
+        tcd.backend.gpu_arch()
+    assert ti.opengl not in probed and len(probed) == len(tcd.backend.GPU_ARCHS)
+
+
+@pytest.mark.parametrize("command", [["bench", "pour", "--particles", "10", "--time", "0.001"],
+                                     ["run", str(ROOT / "scenarios" / "tiny.toml")]])
+def test_gpu_requested_without_a_gpu_is_a_clear_error_and_writes_nothing(command, tmp_path):
+    """In a fresh process (Taichi not yet initialised), as a user runs it."""
+    if _gpu_present():
+        pytest.skip("this machine has a GPU backend")
+    out = tmp_path / "run"
+    extra = ["--out", str(out)] if command[0] == "run" else []
+    proc = subprocess.run([sys.executable, "-m", "tcd.cli", *command, *extra, "--arch", "gpu"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "tcd: error: arch 'gpu' requested but Taichi found no GPU backend" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not out.exists()
