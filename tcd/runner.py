@@ -1,7 +1,9 @@
 """Run a scenario: samples (one per seed) through their stages, with outputs and checkpoints.
 
 Layout of an output directory:
-    scenario.toml              copy of the scenario text
+    scenario.toml              copy of the scenario text (written when the run starts; a
+                               --resume must bring the same scenario: record_scenario)
+    run.json                   the backend the run started on (arch, precision) and tcd's version
     summary.json               headline numbers of the whole run (written at the end)
     sample_<seed>/states.h5    snapshots (every `output.snapshot_every` s of simulated time)
     sample_<seed>/<stage>_series.h5 (+ .csv)   per-step series of each stage
@@ -96,6 +98,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     if resume:
         if not out.is_dir() or not any(out.glob("sample_*/checkpoint.h5")) and not any(out.glob("sample_*/summary.json")):
+            if (out / "batch_checkpoint.h5").is_file():
+                raise FileNotFoundError(f"{out}: this run was started with --batch (it has a "
+                                        "batch_checkpoint.h5): resume it with --batch --resume")
             raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
     t_start = time.perf_counter()
     done = {}
@@ -114,9 +119,7 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 f"each other actively and must not share cores; use --jobs "
                 f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
     backend.check_available(scenario.backend.arch)     # before anything is written
-    out.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(out / "scenario.toml") as tmp:
-        pathlib.Path(tmp).write_text(scenario.text)
+    record_scenario(scenario, out, resume)
     if jobs > 1 and len(pending) > 1:
         import concurrent.futures
         import multiprocessing
@@ -140,6 +143,63 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     summary["jobs"] = jobs
     io.write_json(out / "summary.json", summary)
     return summary
+
+
+def _scenario_record(scenario) -> dict:
+    """What a resumed run must share with the run it continues: the whole configuration but
+    the seeds (a sample's numbers depend on its seed only) and the file's text and path."""
+    return scenario.model_dump(mode="json", exclude={"text", "source", "seeds", "backend"})
+
+
+def _differences(old, new, prefix="") -> list:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
+        return out
+    if isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
+        out = []
+        for k, (a, b) in enumerate(zip(old, new)):
+            out += _differences(a, b, f"{prefix}[{k}]")
+        return out
+    return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
+
+
+def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
+    """A new run: create `out` and keep the scenario's text (scenario.toml) and backend
+    (run.json). A resumed one: refuse, before anything is written, a scenario or backend other
+    than those the run started with (its samples would mix two configurations); the records
+    are left as they are."""
+    from .config import ScenarioError, parse_scenario
+    backend_now = {"arch": scenario.backend.arch, "precision": scenario.backend.precision}
+    stored = out / "scenario.toml"
+    if resume and stored.is_file():
+        try:
+            first = parse_scenario(stored.read_text(encoding="utf-8"), scenario.source)
+        except (ScenarioError, OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{stored}: the scenario this run started with cannot be read "
+                             f"back ({exc}); resume is refused") from None
+        changed = _differences(_scenario_record(first), _scenario_record(scenario))
+        record = out / "run.json"
+        if record.is_file():
+            try:
+                started = json.loads(record.read_text())
+            except (OSError, ValueError):
+                started = {}
+            changed += [f"backend.{k}: {started[k]!r} -> {v!r} (--{k})"
+                        for k, v in backend_now.items() if k in started and started[k] != v]
+        if changed:
+            shown = "; ".join(changed[:6]) + (f"; and {len(changed) - 6} more" if len(changed) > 6 else "")
+            raise ValueError(f"{out}: --resume with a scenario other than the one this run "
+                             f"started with ({stored}): {shown}. Resume with that scenario and "
+                             "backend, or start a new run in another --out directory")
+        return
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(stored) as tmp:
+        pathlib.Path(tmp).write_text(scenario.text)
+    io.write_json(out / "run.json", {**backend_now, "tcd_version": __version__})
 
 
 def batch_problem(scenario) -> str | None:
@@ -177,9 +237,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     if resume and not ck_path.exists():
         raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
     backend.check_available(scenario.backend.arch)     # before anything is written
-    out.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(out / "scenario.toml") as tmp:
-        pathlib.Path(tmp).write_text(scenario.text)
+    record_scenario(scenario, out, resume)
     backend.init(scenario.backend.arch, scenario.backend.precision)
     t_start = time.perf_counter()
     dirs = {seed: out / f"sample_{seed}" for seed in seeds}

@@ -310,3 +310,38 @@ def test_jobs_that_would_share_cores_between_partitioned_threads_are_refused(tmp
     with pytest.raises(ValueError, match=r"4 solver threads on 2 cores.*use --jobs 1"):
         runner.run_scenario(scn, tmp_path / "out", jobs=2, progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_resume_refuses_a_scenario_or_backend_other_than_the_run_started_with(micro_run, tmp_path,
+                                                                               capsys):
+    """A resumed run must continue the configuration it started with: a changed physical
+    setting or precision is refused before anything is written; the same scenario with other
+    comments, or from another file, resumes (here: a finished run, which resumes at once)."""
+    import shutil
+    _, out = micro_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    changed = tmp_path / "changed.toml"
+    changed.write_text(MICRO.replace("max_sweeps = 500", "max_sweeps = 500\n[material]\nfriction = 0.3"))
+    assert cli.main(["run", str(changed), "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "--resume with a scenario other than the one this run started with" in err
+    assert "material.friction: 0.7 -> 0.3" in err
+    same = tmp_path / "same.toml"
+    same.write_text("# a comment\n" + MICRO)
+    assert cli.main(["run", str(same), "--out", str(run), "--resume", "--precision", "f32"]) == 2
+    assert "backend.precision: 'f64' -> 'f32'" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    assert cli.main(["run", str(same), "--out", str(run), "--resume"]) == 0
+    assert (run / "scenario.toml").read_text() == MICRO       # the record is the first one
+
+
+def test_run_into_a_file_is_refused_before_anything_is_written(tmp_path, capsys):
+    target = tmp_path / "taken.png"
+    target.write_bytes(b"an image")
+    scenario = tmp_path / "micro.toml"
+    scenario.write_text(MICRO)
+    assert cli.main(["run", str(scenario), "--out", str(target)]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert target.read_bytes() == b"an image"
