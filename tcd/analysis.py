@@ -138,6 +138,19 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
     """Write PREFIX.h5 and PREFIX.csv (one row per frame); return their paths."""
     if time_step is not None and not (time_step > 0 and math.isfinite(time_step)):
         raise ValueError(f"time step {time_step!r}: expected a positive number of seconds")
+    prefix = os.fspath(out_prefix)
+    for suffix in (".h5", ".csv"):              # PREFIX.h5 given for PREFIX: no PREFIX.h5.h5
+        if prefix.endswith(suffix):
+            prefix = prefix[: -len(suffix)]
+    directory = os.path.dirname(os.path.abspath(prefix))
+    if not os.path.isdir(directory):
+        raise ValueError(f"{prefix}: directory {directory} does not exist")
+    h5, csv = prefix + ".h5", prefix + ".csv"
+    source = os.path.realpath(os.fspath(path))
+    for target in (h5, csv):
+        if os.path.realpath(target) == source:
+            raise ValueError(f"--out {out_prefix}: would overwrite the file being analysed "
+                             f"({path}); choose another prefix")
     states, h = load_states(path, frames)
     if time_step is not None:
         h = float(time_step)
@@ -148,11 +161,6 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
     series["frame"] = np.asarray([frame["index"] for frame in states], np.int64)
     keys = ["frame"] + list(rows[0])
     series = {k: series[k] for k in keys}
-    prefix = os.fspath(out_prefix)
-    directory = os.path.dirname(os.path.abspath(prefix))
-    if not os.path.isdir(directory):
-        raise ValueError(f"{prefix}: directory {directory} does not exist")
-    h5, csv = prefix + ".h5", prefix + ".csv"
     io.write_series(h5, series, units=UNITS, csv_path=csv,
                     attrs={"source": os.fspath(path), "time_step": h if h is not None else "unknown",
                            "stages": [str(frame["stage"]) for frame in states]})

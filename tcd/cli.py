@@ -8,8 +8,10 @@ exits with 130 and, for `tcd run`, says how to resume.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -36,6 +38,25 @@ def _existing_file(path) -> Path:
     if path.is_dir():
         raise UsageError(f"{path}: is a directory, expected a file")
     return path
+
+
+@contextlib.contextmanager
+def _reading(path: Path):
+    """Errors met while reading `path` (and writing what is made of it) as one line that
+    names the file at fault: h5py reports damaged files as OSError, RuntimeError or KeyError
+    (a missing group); an OSError about another file is an output that cannot be written."""
+    try:
+        yield
+    except BrokenPipeError:
+        raise                                   # `tcd info FILE | head`: main's business
+    except OSError as exc:
+        other = getattr(exc, "filename", None)
+        if other is not None and os.path.abspath(os.fspath(other)) != os.path.abspath(path):
+            raise UsageError(f"{other}: cannot write: {exc.strerror or exc}") from None
+        raise UsageError(f"{path}: cannot read: {exc}") from None
+    except (RuntimeError, KeyError) as exc:
+        raise UsageError(f"{path}: cannot read ({type(exc).__name__}: {exc}); the file is "
+                         "damaged or is not a complete tcd file") from None
 
 
 def _existing_results(out_dir: Path) -> list[Path]:
@@ -154,10 +175,9 @@ def cmd_run(args) -> int:
 def cmd_info(args) -> int:
     path = _existing_file(args.file)
     from . import io
-    try:
-        print(io.info(path))
-    except OSError as exc:          # h5py reports unreadable files as OSError
-        raise UsageError(f"{path}: cannot read: {exc}") from None
+    with _reading(path):
+        text = io.info(path)
+    print(text)
     return 0
 
 
@@ -192,10 +212,8 @@ def cmd_export(args) -> int:
     frames = _frames(args.frames)
     parts = [q.strip() for q in args.parts.split(",") if q.strip()]
     from .export import export
-    try:
+    with _reading(path):
         written = export(path, args.out, frames="all" if frames is None else frames, parts=parts)
-    except OSError as exc:          # h5py reports unreadable files as OSError
-        raise UsageError(f"{path}: cannot read: {exc}") from None
     pvd = [str(w) for w in written if w.suffix == ".pvd"]
     print(f"wrote {len(written) - len(pvd)} VTK files into {args.out}; open in ParaView: "
           + ", ".join(pvd))
@@ -206,11 +224,9 @@ def cmd_analyse(args) -> int:
     path = _existing_file(args.file)
     frames = _frames(args.frames)
     from .analysis import analyse
-    try:
+    with _reading(path):
         written = analyse(path, args.out, frames="all" if frames is None else frames,
                           time_step=args.time_step)
-    except OSError as exc:          # h5py reports unreadable files as OSError
-        raise UsageError(f"{path}: cannot read: {exc}") from None
     print("wrote " + ", ".join(written))
     return 0
 
@@ -487,6 +503,11 @@ def main(argv=None) -> int:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
     try:
         return args.handler(args)
+    except BrokenPipeError:
+        # the reader went away (`tcd info FILE | head`): stop quietly, as Unix tools do
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         if args.command == "run" and getattr(args, "out_dir", None) is not None:
             print(f"\ninterrupted; resume with: {_resume_command(args)}", file=sys.stderr)

@@ -360,3 +360,54 @@ def test_gpu_requested_without_a_gpu_is_a_clear_error_and_writes_nothing(command
     assert "tcd: error: arch 'gpu' requested but Taichi found no GPU backend" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not out.exists()
+
+
+SAMPLE = ROOT / "samples" / "leutner_seed1_prepared.h5"
+
+
+def test_analyse_never_overwrites_its_input_and_takes_a_prefix_with_its_suffix(tmp_path, capsys):
+    src = tmp_path / "states.h5"
+    src.write_bytes(SAMPLE.read_bytes())
+    assert main(["analyse", str(src), "--out", str(tmp_path / "states")]) == 2
+    assert "would overwrite the file being analysed" in capsys.readouterr().err
+    assert src.read_bytes() == SAMPLE.read_bytes()
+    assert main(["analyse", str(src), "--out", str(tmp_path / "micro.h5"), "--time-step", "2e-4"]) == 0
+    assert (tmp_path / "micro.h5").is_file() and (tmp_path / "micro.csv").is_file()
+    assert not (tmp_path / "micro.h5.h5").exists()
+
+
+def test_damaged_files_and_unwritable_outputs_are_one_line_naming_the_file(tmp_path, capsys,
+                                                                           monkeypatch):
+    damaged = tmp_path / "damaged.h5"
+    data = bytearray(SAMPLE.read_bytes())
+    data[3000:4500] = bytes(range(256)) * 5 + bytes(220)       # inside the HDF5 metadata
+    damaged.write_bytes(bytes(data))
+    for command in (["info"], ["export", "--out", str(tmp_path / "vtk")],
+                    ["analyse", "--out", str(tmp_path / "micro")]):
+        assert main([command[0], str(damaged), *command[1:]]) == 2, command
+        err = capsys.readouterr().err
+        assert err.startswith(f"tcd: error: {damaged}") and "Traceback" not in err, err
+    # an h5py error reported as RuntimeError or KeyError (a damaged group, a missing dataset)
+    from tcd import io
+    for exc in (RuntimeError("Unable to get group info (bad symbol table node signature)"),
+                KeyError("particles/radius")):
+        def broken(path, exc=exc):
+            raise exc
+        monkeypatch.setattr(io, "info", broken)
+        assert main(["info", str(SAMPLE)]) == 2
+        assert f"tcd: error: {SAMPLE}: cannot read ({type(exc).__name__}" in capsys.readouterr().err
+    monkeypatch.undo()
+    # the output is at fault, not the input
+    assert main(["export", str(SAMPLE), "--out", "/proc/no/such/dir"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: /proc/no") and "cannot write" in err, err
+
+
+def test_info_into_a_closed_pipe_stops_quietly():
+    """`tcd info FILE | head`: more output than the pipe holds (a long states file's)."""
+    code = ("import tcd.io as io; io.info = lambda path: 'line\\n' * 200000; "
+            f"from tcd.cli import main; raise SystemExit(main(['info', {str(SAMPLE)!r}]))")
+    proc = subprocess.run(f"{sys.executable} -c \"{code}\" | head -1", shell=True,
+                          capture_output=True, text=True, timeout=120, executable="/bin/bash")
+    assert proc.stdout == "line\n"
+    assert "Broken pipe" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
