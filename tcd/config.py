@@ -111,11 +111,12 @@ class SolverConfig(_Model):
     neighbour_skin: skin of the broad phase's neighbour list / smallest radius (cost only:
     the contacts are the same for any skin; fast grains get room for about two steps of
     their reach)."""
-    time_step: float = Field(2e-4, gt=0)
+    # bounds: sane physics, and integers that fit the solver's 32-bit kernel arguments
+    time_step: float = Field(2e-4, ge=1e-7, le=0.1)
     theta: float = Field(1.0, ge=0.5, le=1.0)
     tolerance: float = Field(1e-4, gt=0)
-    max_sweeps: int = Field(1000, ge=1)
-    check_every: int = Field(1, ge=1)
+    max_sweeps: int = Field(1000, ge=1, le=10**7)
+    check_every: int = Field(1, ge=1, le=10**7)
     schedule: Literal["auto", "serial", "partitioned", "coloured"] = "auto"
     threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
@@ -150,7 +151,7 @@ class SolverConfig(_Model):
 class MaterialConfig(_Model):
     """density of the grains (kg/m^3); friction: particle-particle Coulomb coefficient;
     wall_friction: particle-wall coefficient during preparation."""
-    density: float = Field(2600.0, gt=0)
+    density: float = Field(2600.0, gt=0, le=1e5)
     friction: float = Field(0.7, ge=0)
     wall_friction: float = Field(0.0, ge=0)
 
@@ -219,8 +220,8 @@ class PrepareStage(_Model):
     packing_fraction: float = Field(0.587, gt=0, lt=0.74)
     courses: tuple[Literal["binder", "surface"], ...] = Field(("binder", "surface"),
                                                               min_length=1, max_length=4)
-    particles_per_layer: int = Field(0, ge=0)
-    size_scale: float = Field(1.0, gt=0)
+    particles_per_layer: int = Field(0, ge=0, le=10**7)
+    size_scale: float = Field(1.0, ge=1e-3, le=1e3)
     column_height_mm: float = Field(1600.0, gt=0)
     lattice_jitter_mm: float = Field(0.2, ge=0)
     settle_speed: float = Field(0.005, gt=0)
@@ -341,7 +342,7 @@ class ShearStage(_Model):
     smoothing_window_mm: float = Field(0.1, gt=0)
     bond_mode: Optional[Literal["paper", "burgers"]] = None
     tolerance: Optional[float] = Field(None, gt=0)
-    max_sweeps: Optional[int] = Field(None, ge=1)
+    max_sweeps: Optional[int] = Field(None, ge=1, le=10**7)
     sample: str = ""
 
     @property

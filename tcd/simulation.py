@@ -26,6 +26,7 @@ from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
 ACCELERATIONS = ("nncg", "none")
+INT32_MAX = 2**31 - 1
 
 
 class CapacityError(RuntimeError):
@@ -72,8 +73,9 @@ class SolverSettings:
             raise ValueError(f"theta must be in [0.5, 1], got {self.theta}")
         if not self.tolerance > 0:
             raise ValueError(f"tolerance must be positive, got {self.tolerance}")
-        if self.max_sweeps < 1 or self.check_every < 1:
-            raise ValueError("max_sweeps and check_every must be >= 1")
+        if not (1 <= self.max_sweeps <= INT32_MAX and 1 <= self.check_every <= INT32_MAX):
+            raise ValueError(f"max_sweeps and check_every must be in [1, {INT32_MAX}] (32-bit "
+                             f"kernel arguments), got {self.max_sweeps}, {self.check_every}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if not 1 <= self.threads <= MAX_PARTS:

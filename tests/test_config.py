@@ -271,6 +271,29 @@ def test_time_step_must_be_positive_and_finite(tmp_path, value):
     assert_names(err, "solver.time_step", "must be")
 
 
+@pytest.mark.parametrize("section, key, value, where", [
+    ("[solver]", "time_step", "1e300", "solver.time_step"),       # ran to t = 7e300 s
+    ("[solver]", "time_step", "1e-300", "solver.time_step"),      # would never end
+    ("[solver]", "max_sweeps", "4294967297", "solver.max_sweeps"),  # wrapped to 1 in the kernel
+    ("[solver]", "check_every", "4294967297", "solver.check_every"),
+    ("[material]", "density", "1e308", "material.density"),
+])
+def test_values_beyond_sane_physics_or_32_bit_kernels_are_refused(tmp_path, section, key, value,
+                                                                   where):
+    err = refusal(tmp_path, MINIMAL + f"{section}\n{key} = {value}\n")
+    assert_names(err, where)
+
+
+@pytest.mark.parametrize("key, value", [("particles_per_layer", "1000000000"),
+                                        ("size_scale", "1e-6"), ("max_sweeps", "4294967297")])
+def test_stage_values_beyond_bounds_are_refused_at_once(tmp_path, key, value):
+    """particles_per_layer = 1e9 built every radius (about 20 GB) before any check refused it."""
+    err = refusal(tmp_path, MINIMAL.replace('kind = "prepare"', f'kind = "prepare"\n{key} = {value}')
+                  if key != "max_sweeps" else
+                  MINIMAL.replace('kind = "shear"', f'kind = "shear"\n{key} = {value}'))
+    assert_names(err, f"stage[{2 if key == 'max_sweeps' else 1}].{key}", "must be")
+
+
 def test_particles_larger_than_the_cylinder(tmp_path):
     # 16 mm spheres x 2 = 32 mm in a 30 mm cylinder
     err = refusal(tmp_path, MINIMAL.replace(
