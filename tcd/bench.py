@@ -17,6 +17,7 @@ import numpy as np
 from . import backend, packing, walls
 
 CYLINDER_RADIUS = 0.075
+SCALING_MIN_SIZE = 300
 
 
 def _init(arch, precision):
@@ -213,7 +214,24 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     grows with N (same column height), timed over `steps` steps after 0.3 s of pouring.
 
     The CSV and the plot are rewritten (atomically) after every size, so an interrupted scan
-    keeps the sizes it finished; `progress(row)` is called with each finished row."""
+    keeps the sizes it finished; `progress(row)` is called with each finished row. Sizes,
+    steps and the output folder are checked before the first size runs."""
+    sizes = [int(n) for n in sizes]
+    if not sizes or min(sizes) < SCALING_MIN_SIZE:
+        raise ValueError(f"sizes {sizes}: the scaling benchmark needs at least "
+                         f"{SCALING_MIN_SIZE} spheres per size (its cylinder narrows as "
+                         "sqrt(N), and below that it is too narrow for the 1.6 m lattice column)")
+    if steps < 2:
+        raise ValueError(f"steps {steps}: at least 2 (the first step, which compiles, is not timed)")
+    import tempfile
+    base = pathlib.Path(out)
+    try:                                # an unwritable --out fails now, not after hours
+        base.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=base.parent):
+            pass
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot write into {base.parent}: "
+                         f"{exc.strerror or exc}") from None
     _init(arch, precision)
     rows = []
     for n in sizes:

@@ -194,6 +194,8 @@ def _frames(text):
 def cmd_render(args) -> int:
     path = _existing_file(args.file)
     frames = _frames(args.frames)
+    from .render import check_output
+    check_output(args.out)          # before Taichi starts (seconds)
     import tcd
     tcd.init(args.arch, args.precision)
     from .render import render_file

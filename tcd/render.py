@@ -53,6 +53,20 @@ MAX_WALLS = 16
 COLOR_MODES = ("layer", "speed", "vx", "bond-damage")
 CAMERA_PRESETS = ("iso", "front", "perspective")
 ANIMATION_EXTENSIONS = (".gif", ".mp4")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def check_output(out) -> None:
+    """ValueError unless `out` can be an image or animation file: a known extension (the
+    format is chosen from it) and not an existing directory. Called before any rendering."""
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in IMAGE_EXTENSIONS + ANIMATION_EXTENSIONS:
+        raise ValueError(f"--out {out}: the extension sets the format; expected one of "
+                         f"{', '.join(IMAGE_EXTENSIONS)} (an image) or "
+                         f"{', '.join(ANIMATION_EXTENSIONS)} (an animation)")
+    if out.is_dir():
+        raise ValueError(f"--out {out}: is a directory, expected an image file name")
 
 #: layer colours: 0 binder course (dark grey-brown), 1 surface course (light grey-beige)
 LAYER_COLORS = np.array([[0.36, 0.29, 0.23], [0.80, 0.76, 0.68]])
@@ -1141,6 +1155,7 @@ def render_file(path, out, *, frame=-1, frames=None, color="layer", section=None
     """Render a states.h5 to an image (out *.png: one frame) or an animation (out *.gif or
     *.mp4: `frames`, "all" by default, one colour scale for all frames). Written atomically."""
     out = Path(out)
+    check_output(out)
     animate = out.suffix.lower() in ANIMATION_EXTENSIONS
     if not animate:
         if frames is not None:

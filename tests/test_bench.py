@@ -29,3 +29,16 @@ def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatc
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # nothing half-written is left beside the outputs
     assert sorted(p.name for p in out.parent.iterdir()) == ["scaling.csv", "scaling.png"]
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"sizes": (100,)}, "at least 300 spheres"),
+    ({"steps": 1}, "steps 1: at least 2"),                   # divided by steps - 1 at the end
+    ({"out": "/proc/no/such/scaling"}, "cannot write into /proc/no/such"),
+])
+def test_scaling_checks_its_arguments_before_the_first_size(tmp_path, monkeypatch, options, message):
+    monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: pytest.fail("a size was run"))
+    kwargs = {"sizes": (300,), "steps": 3, "out": str(tmp_path / "scaling"), **options}
+    with pytest.raises(ValueError, match=message):
+        bench.scaling(**kwargs)
+    assert list(tmp_path.iterdir()) == []

@@ -411,3 +411,12 @@ def test_info_into_a_closed_pipe_stops_quietly():
                           capture_output=True, text=True, timeout=120, executable="/bin/bash")
     assert proc.stdout == "line\n"
     assert "Broken pipe" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("out, message", [("picture", "the extension sets the format"),
+                                          ("picture.xyz", "the extension sets the format"),
+                                          ("folder.png", "is a directory")])
+def test_render_refuses_an_output_it_cannot_write_before_it_starts(tmp_path, capsys, out, message):
+    (tmp_path / "folder.png").mkdir()
+    assert main(["render", str(SAMPLE), "--out", str(tmp_path / out)]) == 2
+    assert message in capsys.readouterr().err
