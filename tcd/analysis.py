@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 
 import numpy as np
 
@@ -156,6 +157,10 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
         h = float(time_step)
     if not states:
         raise ValueError(f"{path}: no frames to analyse")
+    if h is None:
+        print(f"tcd analyse: {path} does not give the time step (a prepared sample or a "
+              "checkpoint): normal forces and stresses are left out; pass --time-step H to "
+              "have them", file=sys.stderr)
     rows = [frame_row(frame, h) for frame in states]
     series = {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
     series["frame"] = np.asarray([frame["index"] for frame in states], np.int64)

@@ -185,7 +185,7 @@ def _frames(text):
     if text is None or text == "all":
         return text
     try:
-        return [int(k) for k in text.split(",") if k.strip()]
+        return list(dict.fromkeys(int(k) for k in text.split(",") if k.strip()))  # once each
     except ValueError:
         raise UsageError(f"--frames {text!r}: expected 'all' or comma-separated frame indices") \
             from None
@@ -194,8 +194,11 @@ def _frames(text):
 def cmd_render(args) -> int:
     path = _existing_file(args.file)
     frames = _frames(args.frames)
-    from .render import check_output
+    from .render import ANIMATION_EXTENSIONS, check_output
     check_output(args.out)          # before Taichi starts (seconds)
+    if args.frame != -1 and Path(args.out).suffix.lower() in ANIMATION_EXTENSIONS:
+        raise UsageError(f"--frame {args.frame} picks the frame of an image; an animation "
+                         f"({args.out}) takes --frames K,K,... (default all)")
     import tcd
     tcd.init(args.arch, args.precision)
     from .render import render_file
@@ -212,7 +215,7 @@ def cmd_render(args) -> int:
 def cmd_export(args) -> int:
     path = _existing_file(args.file)
     frames = _frames(args.frames)
-    parts = [q.strip() for q in args.parts.split(",") if q.strip()]
+    parts = list(dict.fromkeys(q.strip() for q in args.parts.split(",") if q.strip()))
     from .export import export
     with _reading(path):
         written = export(path, args.out, frames="all" if frames is None else frames, parts=parts)

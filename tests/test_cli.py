@@ -420,3 +420,18 @@ def test_render_refuses_an_output_it_cannot_write_before_it_starts(tmp_path, cap
     (tmp_path / "folder.png").mkdir()
     assert main(["render", str(SAMPLE), "--out", str(tmp_path / out)]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_repeated_frames_and_parts_are_exported_once(tmp_path, capsys):
+    """--parts particles,particles reported 2 files written for 1 (and a .pvd listed the file
+    twice)."""
+    assert main(["export", str(SAMPLE), "--out", str(tmp_path / "vtk"), "--parts",
+                 "particles,particles", "--frames", "0,0"]) == 0
+    assert "wrote 1 VTK files" in capsys.readouterr().out
+    pvd = (tmp_path / "vtk" / f"{SAMPLE.stem}_particles.pvd").read_text()
+    assert pvd.count("<DataSet ") == 1
+
+
+def test_frame_with_an_animation_output_is_refused(tmp_path, capsys):
+    assert main(["render", str(SAMPLE), "--out", str(tmp_path / "a.gif"), "--frame", "2"]) == 2
+    assert "an animation" in capsys.readouterr().err and not (tmp_path / "a.gif").exists()
