@@ -202,12 +202,13 @@ def cmd_render(args) -> int:
     import tcd
     tcd.init(args.arch, args.precision)
     from .render import render_file
-    try:
-        render_file(path, args.out, frame=args.frame, frames=frames, color=args.color,
-                    section=args.section, camera=args.camera, width=args.width,
-                    height=args.height, fps=args.fps)
-    except RuntimeError as exc:     # e.g. no MP4 writer installed
-        raise UsageError(str(exc)) from None
+    with _reading(path):
+        try:
+            render_file(path, args.out, frame=args.frame, frames=frames, color=args.color,
+                        section=args.section, camera=args.camera, width=args.width,
+                        height=args.height, fps=args.fps)
+        except RuntimeError as exc:     # e.g. no MP4 writer installed
+            raise UsageError(str(exc)) from None
     print(f"wrote {args.out}")
     return 0
 

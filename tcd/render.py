@@ -45,7 +45,7 @@ from typing import Optional, Tuple
 import numpy as np
 import taichi as ti
 
-from . import backend
+from . import backend, io
 from .contacts import exclusive_scan
 
 PLANE, CYLINDER = 0, 1
@@ -915,7 +915,7 @@ def load_frame(path, frame: int = -1) -> dict:
         for key, (dataset, empty, dtype) in _FRAME_DATASETS.items():
             group = dataset.split("/")[0]
             if dataset in g:
-                out[key] = np.asarray(g[dataset][()], dtype)
+                out[key] = np.asarray(io._read(g[dataset]), dtype)    # checksum-checked
             elif group not in g:
                 out[key] = np.zeros(empty, dtype)
             elif group == "particles" and key in _PARTICLE_DEFAULTS:

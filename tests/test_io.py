@@ -418,3 +418,29 @@ def test_info_summarises_states_series_and_checkpoints(tmp_path):
     io.save_checkpoint(checkpoint, {"x": np.zeros((4, 3))}, {"step": 4})
     text = io.info(checkpoint)
     assert "checkpoint" in text and "x: float64 (4, 3)" in text and "step" in text
+
+
+@pytest.mark.parametrize("kind", ["checkpoint", "series"])
+def test_a_byte_damaged_on_disk_is_a_read_error_not_wrong_numbers(tmp_path, kind):
+    """Numeric datasets carry HDF5's Fletcher-32 checksum: flipping one byte of the stored
+    numbers makes the read fail (before, h5py returned the damaged values)."""
+    path = tmp_path / f"{kind}.h5"
+    values = np.linspace(0.0, 1.0, 20000)
+    if kind == "checkpoint":
+        io.save_checkpoint(path, {"x": values}, {"time": 0.0})
+        name = "arrays/x"
+    else:
+        io.write_series(path, {"time": values})
+        name = "time"
+    with h5py.File(path, "r") as f:
+        ds = f[name]
+        assert ds.fletcher32
+        offset = ds.id.get_chunk_info(0).byte_offset
+    data = bytearray(path.read_bytes())
+    data[offset + 100] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(OSError, match="checksum mismatch, the file is damaged"):
+        if kind == "checkpoint":
+            io.load_checkpoint(path)
+        else:
+            io.read_series(path)
