@@ -147,8 +147,10 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
 
 def _scenario_record(scenario) -> dict:
     """What a resumed run must share with the run it continues: the whole configuration but
-    the seeds (a sample's numbers depend on its seed only) and the file's text and path."""
-    return scenario.model_dump(mode="json", exclude={"text", "source", "seeds", "backend"})
+    the seeds (a sample's numbers depend on its seed only), the description and the file's
+    text and path (the backend is checked against run.json)."""
+    return scenario.model_dump(mode="json", exclude={"text", "source", "seeds", "backend",
+                                                     "description"})
 
 
 def _differences(old, new, prefix="") -> list:
