@@ -194,11 +194,8 @@ def _frames(text):
 def cmd_render(args) -> int:
     path = _existing_file(args.file)
     frames = _frames(args.frames)
-    from .render import ANIMATION_EXTENSIONS, check_output
-    check_output(args.out)          # before Taichi starts (seconds)
-    if args.frame != -1 and Path(args.out).suffix.lower() in ANIMATION_EXTENSIONS:
-        raise UsageError(f"--frame {args.frame} picks the frame of an image; an animation "
-                         f"({args.out}) takes --frames K,K,... (default all)")
+    from .render import check_output
+    check_output(args.out, args.frame)      # before Taichi starts (seconds)
     import tcd
     tcd.init(args.arch, args.precision)
     from .render import render_file

@@ -56,11 +56,15 @@ ANIMATION_EXTENSIONS = (".gif", ".mp4")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
-def check_output(out) -> None:
+def check_output(out, frame: int = -1) -> None:
     """ValueError unless `out` can be an image or animation file: a known extension (the
-    format is chosen from it) and not an existing directory. Called before any rendering."""
+    format is chosen from it) and not an existing directory; and unless a `frame` other than
+    the default (the last) goes with an image. Called before any rendering."""
     out = Path(out)
     suffix = out.suffix.lower()
+    if frame != -1 and suffix in ANIMATION_EXTENSIONS:
+        raise ValueError(f"--frame {frame} picks the frame of an image; an animation ({out}) "
+                         "takes --frames K,K,... (default all)")
     if suffix not in IMAGE_EXTENSIONS + ANIMATION_EXTENSIONS:
         raise ValueError(f"--out {out}: the extension sets the format; expected one of "
                          f"{', '.join(IMAGE_EXTENSIONS)} (an image) or "

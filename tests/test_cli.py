@@ -81,7 +81,7 @@ def test_run_bad_scenario_names_the_key(tmp_path, capsys, runner_calls):
     assert main(["run", str(bad)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("tcd: error: ")
-    assert f"{bad}: solver.time_step: must be greater than 0" in err
+    assert f"{bad}: solver.time_step: must be greater than or equal to" in err
     assert "Traceback" not in err and runner_calls == []
 
 
@@ -274,14 +274,16 @@ def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backe
     states = tmp_path / "states.h5"
     states.write_bytes(b"")
     calls = []
-    stub("render", render_file=lambda path, out, **kw: calls.append((path, out, kw)))
+    stub("render", render_file=lambda path, out, **kw: calls.append((path, out, kw)),
+         check_output=lambda out, frame=-1: calls.append(("checked", out, frame)))
     inits = []
     monkeypatch.setattr(tcd, "init", lambda a, p: inits.append((a, p)))
     assert main(["render", str(states), "--out", str(tmp_path / "a.gif"), "--frames", "0,2",
                  "--color", "speed", "--section", "xz", "--camera", "front", "--width", "64",
                  "--height", "48", "--arch", arch, "--precision", precision]) == 0
     assert inits == [(arch, precision)]
-    (path, out, kw) = calls[0]
+    assert calls[0] == ("checked", str(tmp_path / "a.gif"), -1)
+    (path, out, kw) = calls[1]
     assert str(path) == str(states) and str(out) == str(tmp_path / "a.gif")
     assert kw == dict(frame=-1, frames=[0, 2], color="speed", section="xz", camera="front",
                       width=64, height=48, fps=10.0)
