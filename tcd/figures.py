@@ -530,7 +530,8 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
 
     figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written)
     if summary is None:
-        warnings.warn(f"{run_dir / SUMMARY_NAME} missing: Table 2 from the series peaks",
+        state = "unreadable" if (run_dir / SUMMARY_NAME).exists() else "missing"
+        warnings.warn(f"{run_dir / SUMMARY_NAME} {state}: Table 2 from the series peaks",
                       FigureWarning, stacklevel=2)
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples))
     _write_text(out_dir / "table2.md", table2_markdown(rows), written)
