@@ -36,6 +36,7 @@ COURSE_NAMES = ("binder", "surface")
 NAME_PATTERN = r"^[A-Za-z0-9_.-]+$"
 #: a sample may be confined to no less than this fraction of its poured layers' total height
 MIN_SAMPLE_FRACTION = 0.9
+MAX_PARTICLES_PER_LAYER = 10**7      # spheres per layer, given or derived
 #: keys of `Scenario` filled by the loader, not by the file
 _LOADER_FIELDS = ("text", "source")
 
@@ -220,7 +221,7 @@ class PrepareStage(_Model):
     packing_fraction: float = Field(0.587, gt=0, lt=0.74)
     courses: tuple[Literal["binder", "surface"], ...] = Field(("binder", "surface"),
                                                               min_length=1, max_length=4)
-    particles_per_layer: int = Field(0, ge=0, le=10**7)
+    particles_per_layer: int = Field(0, ge=0, le=MAX_PARTICLES_PER_LAYER)
     size_scale: float = Field(1.0, ge=1e-3, le=1e3)
     column_height_mm: float = Field(1600.0, gt=0)
     lattice_jitter_mm: float = Field(0.2, ge=0)
@@ -293,6 +294,15 @@ class PrepareStage(_Model):
             problems.append(("vibration_amplitude_mm",
                              f"{self.vibration_amplitude_mm:g} mm must be smaller than "
                              f"layer_height_mm ({self.layer_height_mm:g} mm)"))
+        if not problems and self.particles_per_layer == 0:
+            for course in self.courses:
+                n = self.layer_particle_count(course)
+                if n > MAX_PARTICLES_PER_LAYER:
+                    problems.append(("size_scale",
+                                     f"{n:.3g} spheres in a {course} layer (the layer filled at "
+                                     f"packing_fraction with spheres x size_scale "
+                                     f"{self.size_scale:g}): at most {MAX_PARTICLES_PER_LAYER:.0e}"))
+                    break
         if not problems:
             problems += self._column_problems()
         _raise_if(problems)
@@ -422,12 +432,28 @@ class Scenario(_Model):
                                                     f"one sample"))
             seen.add(seed)
         prepared = None
+        kinds = [stage.kind for stage in self.stages]
+        for kind in ("prepare", "shear"):
+            if kinds.count(kind) > 1:
+                second = [k for k, x in enumerate(kinds) if x == kind][1]
+                problems.append((f"stage[{second + 1}].kind",
+                                 f"a second {kind} stage: a scenario has at most one prepare "
+                                 "stage and one shear stage (a second one would overwrite the "
+                                 f"first one's {kind}_series and mix their samples)"))
+        if "prepare" in kinds and "shear" in kinds and kinds.index("prepare") > kinds.index("shear"):
+            problems.append((f"stage[{kinds.index('prepare') + 1}].kind",
+                             "a prepare stage after the shear stage: prepare the sample first"))
         for k, stage in enumerate(self.stages):
             if isinstance(stage, PrepareStage):
                 prepared = stage
                 continue
             key = f"stage[{k + 1}]"
             if stage.sample:
+                if prepared is not None:
+                    problems.append((f"{key}.sample",
+                                     "a shear stage after a prepare stage shears the sample "
+                                     "that stage makes; this sample file would be ignored: "
+                                     "remove `sample`, or the prepare stage"))
                 continue
             if prepared is None:
                 problems.append((f"{key}.sample", "a shear stage needs a preceding prepare "

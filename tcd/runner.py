@@ -591,8 +591,18 @@ def restore_simulation(scn, arrays: dict, meta: dict):
 
 
 def load_prepared(scn, path):
+    """The prepared sample at `path` (a run's sample_<seed>/prepared.h5, or a file of that
+    format) as a simulation. A run's checkpoint.h5, or a sample that already has bonds (it
+    was sheared), is refused: shearing it would shear a sample twice, or half-prepared."""
     p = pathlib.Path(path)
     arrays, meta = io.load_checkpoint(p)
+    if "phase_index" in meta:
+        raise ValueError(f"{p}: a run checkpoint (stage {meta.get('stage')}, phase "
+                         f"{meta.get('phase_index')}), not a prepared sample: give the run's "
+                         "sample_<seed>/prepared.h5, or continue that run with --resume")
+    if len(arrays.get("bonds/state", ())):
+        raise ValueError(f"{p}: the sample has {len(arrays['bonds/state'])} bonds: it was "
+                         "sheared already; a shear stage starts from an unbonded prepared sample")
     return restore_simulation(scn, arrays, meta)
 
 

@@ -419,3 +419,26 @@ def test_examples_in_the_documentation_parse():
                        for k, r in err.problems), str(err)
             continue
         assert s.name and s.stages
+
+
+@pytest.mark.parametrize("stages, key, words", [
+    # a second shear re-bonded and sheared the sheared sample, overwriting the first series
+    (["prepare", "shear", "shear"], "stage[3].kind", ("second shear stage",)),
+    (["prepare", "prepare", "shear"], "stage[2].kind", ("second prepare stage",)),
+    # a prepare after a shear poured new spheres onto the sheared sample
+    (["shear+sample", "prepare"], "stage[2].kind", ("prepare stage after the shear",)),
+    # the sample file was ignored: the shear took the prepare stage's sample
+    (["prepare", "shear+sample"], "stage[2].sample", ("would be ignored",)),
+])
+def test_stage_sequences_that_would_mix_or_ignore_samples_are_refused(tmp_path, stages, key, words):
+    (tmp_path / "s.h5").write_bytes(b"")
+    text = 'name = "x"\n' + "".join(
+        '[[stage]]\nkind = "shear"\nsample = "s.h5"\n' if kind == "shear+sample"
+        else f'[[stage]]\nkind = "{kind}"\n' for kind in stages)
+    assert_names(refusal(tmp_path, text), key, *words)
+
+
+def test_a_derived_sphere_count_has_the_same_bound_as_a_given_one(tmp_path):
+    """size_scale = 0.001 with particles_per_layer = 0 asked for 12.2 TiB of radii."""
+    err = refusal(tmp_path, MINIMAL.replace('kind = "prepare"', 'kind = "prepare"\nsize_scale = 0.001'))
+    assert_names(err, "stage[1].size_scale", "spheres in a binder layer", "at most 1e+07")

@@ -345,3 +345,23 @@ def test_run_into_a_file_is_refused_before_anything_is_written(tmp_path, capsys)
     assert cli.main(["run", str(scenario), "--out", str(target)]) == 2
     assert "exists and is not a directory" in capsys.readouterr().err
     assert target.read_bytes() == b"an image"
+
+
+def test_a_shear_starts_only_from_an_unbonded_prepared_sample(micro_run, tmp_path):
+    """A finished run's checkpoint.h5 (after its shear) was accepted as a prepared sample and
+    sheared a second time."""
+    from tcd import runner
+    from tcd.config import load_scenario
+    scenario, out = micro_run
+    scn = load_scenario(scenario)
+    with pytest.raises(ValueError, match="a run checkpoint .*not a prepared sample"):
+        runner.load_prepared(scn, out / "sample_3" / "checkpoint.h5")
+    arrays, meta = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
+    assert len(arrays["bonds/state"]) > 0
+    _, prepared_meta = io.load_checkpoint(out / "sample_3" / "prepared.h5")
+    io.save_checkpoint(tmp_path / "sheared.h5", arrays, prepared_meta)
+    with pytest.raises(ValueError, match="bonds: it was sheared already"):
+        runner.load_prepared(scn, tmp_path / "sheared.h5")
+    sim = runner.load_prepared(scn, out / "sample_3" / "prepared.h5")
+    assert sim.n == len(arrays["particles/radius"])
+    sim.close()
