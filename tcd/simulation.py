@@ -27,6 +27,43 @@ from .walls import KINDS, Wall
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
 ACCELERATIONS = ("nncg", "none")
 INT32_MAX = 2**31 - 1
+# what load_state_dict needs of a state (state_dict writes these and more)
+STATE_KEYS = tuple("particles/" + k for k in ("x", "v", "w", "radius", "layer", "inv_mass",
+                                               "inv_inertia", "f_ext")) + tuple(
+    "contacts/" + k for k in ("i", "j", "impulse", "gap", "start")) + ("bonds/state",)
+
+
+def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.ndarray:
+    """`values` as an (n, 3) float array: one 3-vector per particle, or (`broadcast`) one for
+    all; ValueError naming `name` for any other shape (a shorter array was zero-padded, a
+    longer one cut) or for NaN and infinite entries (they spread through every later step)."""
+    arr = np.asarray(values, dtype=float)
+    if broadcast and arr.shape == (3,):
+        arr = np.broadcast_to(arr, (n, 3))
+    if arr.shape != (n, 3):
+        want = f"({n}, 3) or (3,)" if broadcast else f"({n}, 3)"
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite (got NaN or infinity at particle "
+                         f"{int(np.argwhere(~np.isfinite(arr))[0, 0])})")
+    return np.array(arr)
+
+
+def _finite(name: str, value, *, low=None, positive=False) -> None:
+    """ValueError unless `value` is a finite number (>= low, or > 0 with `positive`)."""
+    try:
+        ok = math.isfinite(float(value))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not ok or (positive and not float(value) > 0) or (low is not None and float(value) < low):
+        need = "positive and finite" if positive else (f"finite and >= {low}" if low is not None
+                                                       else "finite")
+        raise ValueError(f"{name} must be {need}, got {value!r}")
+
+
+def _integer(name: str, value, low: int, high: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
 
 
 class CapacityError(RuntimeError):
@@ -67,15 +104,23 @@ class SolverSettings:
     neighbour_skin: float = 2.0
 
     def __post_init__(self):
-        if not self.time_step > 0:
-            raise ValueError(f"time_step must be positive, got {self.time_step}")
+        _finite("time_step", self.time_step, positive=True)
         if not 0.5 <= self.theta <= 1.0:
             raise ValueError(f"theta must be in [0.5, 1], got {self.theta}")
-        if not self.tolerance > 0:
-            raise ValueError(f"tolerance must be positive, got {self.tolerance}")
-        if not (1 <= self.max_sweeps <= INT32_MAX and 1 <= self.check_every <= INT32_MAX):
-            raise ValueError(f"max_sweeps and check_every must be in [1, {INT32_MAX}] (32-bit "
-                             f"kernel arguments), got {self.max_sweeps}, {self.check_every}")
+        _finite("tolerance", self.tolerance, positive=True)
+        # integers handed to the kernels as 32-bit arguments
+        _integer("max_sweeps", self.max_sweeps, 1, INT32_MAX)
+        _integer("check_every", self.check_every, 1, INT32_MAX)
+        _integer("threads", self.threads, 1, MAX_PARTS)
+        _integer("projection_passes", self.projection_passes, 0, INT32_MAX)
+        _finite("overlap_slop", self.overlap_slop, low=0.0)
+        _finite("alert_ratio", self.alert_ratio, positive=True)
+        _finite("neighbour_skin", self.neighbour_skin, low=0.0)
+        g = np.asarray(self.gravity, dtype=float) if np.ndim(self.gravity) == 1 else None
+        if g is None or g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"gravity must be a finite 3-vector (m/s^2), got {self.gravity!r}")
+        if not isinstance(self.bond_blocks, (bool, np.bool_)):
+            raise ValueError(f"bond_blocks must be True or False, got {self.bond_blocks!r}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if not 1 <= self.threads <= MAX_PARTS:
@@ -111,8 +156,8 @@ class BondLaw:
             raise ValueError(f"bond mode must be 'paper' or 'burgers', got {self.mode!r}")
         for f in ("maxwell_stiffness", "maxwell_viscosity", "kelvin_stiffness", "kelvin_viscosity",
                   "yield_stress"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"bond {f} must be positive, got {getattr(self, f)}")
+            _finite(f"bond {f}", getattr(self, f), positive=True)
+        _finite("bond friction_after_break", self.friction_after_break, low=0.0)
         if not -1.0 < self.poisson_ratio < 0.5:
             raise ValueError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
 
@@ -178,8 +223,16 @@ class Simulation:
             raise ValueError("every particle radius must be positive and finite")
         if not np.all(np.isfinite(position)):
             raise ValueError("particle positions must be finite")
-        if not density > 0:
-            raise ValueError(f"density must be positive, got {density}")
+        _finite("density", density, positive=True)
+        _finite("friction", friction, low=0.0)
+        _finite("time", time)
+        velocity = (np.zeros((n, 3)) if velocity is None
+                    else per_particle("velocity", velocity, n, broadcast=False))
+        if fixed is not None:
+            fixed = np.asarray(fixed)
+            if fixed.shape != (n,) or fixed.dtype != bool:
+                raise ValueError(f"fixed must be {n} booleans (one per particle), got shape "
+                                 f"{fixed.shape}, dtype {fixed.dtype}")
         system = np.zeros(n, np.int32) if system is None else np.asarray(system).reshape(-1)
         if system.shape != (n,) or not np.issubdtype(system.dtype, np.integer):
             raise ValueError(f"system must be {n} integers, got shape {system.shape}, dtype {system.dtype}")
@@ -225,7 +278,7 @@ class Simulation:
         put(p.inv_mass, inv_mass)
         put(p.inv_inertia, inv_inertia)
         put(p.x, position)
-        put(p.v, np.zeros((n, 3)) if velocity is None else np.asarray(velocity, dtype=float))
+        put(p.v, velocity)
         put(p.w, np.zeros((n, 3)))
         put(p.f_ext, np.zeros((n, 3)))
         put(p.layer, np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
@@ -306,6 +359,10 @@ class Simulation:
         walls = list(walls)
         if len(walls) > MAX_WALLS:
             raise ValueError(f"at most {MAX_WALLS} walls, got {len(walls)}")
+        for k, w in enumerate(walls):
+            if not isinstance(w, Wall):
+                raise ValueError(f"wall {k} is a {type(w).__name__}, not a tcd.walls.Wall "
+                                 "(make it with walls.plane / walls.cylinder, or Wall.from_dict)")
         self.walls = walls
         self._upload_walls(self.time)
         if hasattr(self, "contacts"):
@@ -351,6 +408,7 @@ class Simulation:
 
     # ---------------------------------------------------------------- the time step
     def step(self, count: int = 1) -> StepRecord:
+        _integer("step count", count, 0, 2**62)
         for _ in range(count):
             self._step()
         return self.last
@@ -628,9 +686,18 @@ class Simulation:
         """Restore particles, contact history and bonds written by `state_dict` (bit-exact).
         Walls are part of the scenario: set them with `set_walls`."""
         p = self.particles
+        missing = [k for k in STATE_KEYS if k not in d]
+        if missing:
+            raise ValueError(f"state lacks {', '.join(missing)} (not a state_dict of a Simulation)")
         n = len(d["particles/radius"])
         if n != self.n:
             raise ValueError(f"state has {n} particles, simulation has {self.n}")
+        for key in ("x", "v", "w"):
+            per_particle(f"state's particles/{key}", d["particles/" + key], n, broadcast=False)
+        j = np.asarray(d["contacts/j"])
+        if j.size and (j.min() < 0 or j.max() >= n + MAX_WALLS):
+            raise ValueError(f"state's contacts/j has indices outside the {n} particles and "
+                             f"{MAX_WALLS} wall slots")
         system = np.asarray(d.get("particles/system", np.zeros(n, np.int32)))
         if not np.array_equal(system, get(p.system, n)):
             raise ValueError("state's particle systems differ from the simulation's "
@@ -798,14 +865,16 @@ class Simulation:
         return self.wall_fields.force[k].to_numpy().astype(float)
 
     def set_external_force(self, force) -> None:
-        put(self.particles.f_ext, np.zeros((self.n, 3)) + np.asarray(force, dtype=float))
+        """Force (N) on every particle: one 3-vector per particle, or one for all."""
+        put(self.particles.f_ext, per_particle("external force", force, self.n))
 
     def set_positions(self, x) -> None:
-        put(self.particles.x, np.asarray(x, dtype=float).reshape(self.n, 3))
+        put(self.particles.x, per_particle("positions", x, self.n, broadcast=False))
         self._neighbours_valid = False
 
     def set_velocities(self, v) -> None:
-        put(self.particles.v, np.zeros((self.n, 3)) + np.asarray(v, dtype=float))
+        """Velocities (m/s): one 3-vector per particle, or one for all."""
+        put(self.particles.v, per_particle("velocities", v, self.n))
 
     def contact_arrays(self) -> dict:
         ct = self.contacts
@@ -816,7 +885,7 @@ class Simulation:
                 "gap": get(ct.gap, m).astype(float)}
 
     def set_angular_velocities(self, w) -> None:
-        put(self.particles.w, np.zeros((self.n, 3)) + np.asarray(w, dtype=float))
+        put(self.particles.w, per_particle("angular velocities", w, self.n))
 
     def bonds_state_counts(self) -> tuple:
         """(intact, broken in tension, broken in shear)."""
@@ -833,6 +902,10 @@ class Simulation:
 
     def replace_wall(self, k: int, wall: Wall) -> None:
         """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
+        if not 0 <= k < len(self.walls):
+            raise ValueError(f"no wall {k}: the simulation has {len(self.walls)} walls")
+        if not isinstance(wall, Wall):
+            raise ValueError(f"wall {k}: a {type(wall).__name__}, not a tcd.walls.Wall")
         self.walls[k] = wall
         self._upload_walls(self.time)
 

@@ -59,12 +59,31 @@ class Wall:
             raise ValueError(f"wall {self.name!r}: unknown kind {self.kind!r} (plane, cylinder)")
         if self.motion not in MOTIONS:
             raise ValueError(f"wall {self.name!r}: unknown motion {self.motion!r} {MOTIONS}")
+        for key in ("point", "direction", "velocity", "amplitude"):
+            v = np.asarray(getattr(self, key), dtype=float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"wall {self.name!r}: {key} must be a finite 3-vector, got "
+                                 f"{getattr(self, key)!r}")
+            object.__setattr__(self, key, tuple(float(c) for c in v))
+        for key in ("radius", "friction", "frequency", "start"):
+            try:
+                value = float(getattr(self, key))
+            except (TypeError, ValueError):
+                raise ValueError(f"wall {self.name!r}: {key} must be a number, got "
+                                 f"{getattr(self, key)!r}") from None
+            if not math.isfinite(value):
+                raise ValueError(f"wall {self.name!r}: {key} must be finite, got {value!r}")
+            object.__setattr__(self, key, value)
+        ext = np.asarray(self.extent, dtype=float)
+        if ext.shape != (2,) or not np.all(np.isfinite(ext)):
+            raise ValueError(f"wall {self.name!r}: extent must be two finite numbers (lo, hi), "
+                             f"got {self.extent!r}")
+        object.__setattr__(self, "extent", (float(ext[0]), float(ext[1])))
         d = np.asarray(self.direction, dtype=float)
         n = float(np.linalg.norm(d))
         if not n > 0:
             raise ValueError(f"wall {self.name!r}: direction must be a non-zero vector")
         object.__setattr__(self, "direction", tuple(float(c) for c in d / n))
-        object.__setattr__(self, "point", tuple(float(c) for c in self.point))
         if self.kind == "cylinder":
             if not self.radius > 0:
                 raise ValueError(f"wall {self.name!r}: cylinder radius must be positive")

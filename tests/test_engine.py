@@ -372,6 +372,14 @@ def test_same_inputs_give_the_same_numbers():
     (dict(radius=[0.001, 0.001]), "shape"),
     (dict(density=-1.0), "density"),
     (dict(friction=-0.1), "friction"),
+    # session 14 audit: each of these was accepted and spread through later steps
+    (dict(density=float("inf")), "density must be positive and finite"),   # froze every sphere
+    (dict(friction=float("nan")), "friction must be finite"),               # acted as infinite
+    (dict(velocity=[[float("nan"), 0, 0]]), "velocity must be finite"),
+    (dict(radius=[0.001] * 2, position=[[0, 0, 0], [0, 0, 0.01]], velocity=[[0, 0, 0]]),
+     r"velocity must have shape \(2, 3\)"),                              # was zero-padded
+    (dict(fixed=[True, False]), "fixed must be 1 booleans"),
+    (dict(time=float("nan")), "time must be finite"),
 ])
 def test_bad_input_is_refused_with_a_named_reason(bad, message):
     args = dict(radius=[0.001], position=[[0, 0, 0]])
@@ -383,7 +391,55 @@ def test_bad_input_is_refused_with_a_named_reason(bad, message):
 @pytest.mark.parametrize("bad, message", [
     (dict(time_step=0.0), "time_step"), (dict(theta=0.3), "theta"),
     (dict(tolerance=-1.0), "tolerance"), (dict(schedule="magic"), "schedule"),
-    (dict(neighbour_skin=-0.1), "neighbour_skin")])
+    (dict(neighbour_skin=-0.1), "neighbour_skin"),
+    # these failed inside Taichi at the first step, or were accepted
+    (dict(time_step=float("inf")), "time_step"), (dict(tolerance=float("inf")), "tolerance"),
+    (dict(max_sweeps=10.5), "max_sweeps must be an integer"),
+    (dict(max_sweeps=2**32 + 1), "max_sweeps must be an integer"),
+    (dict(threads=2.5), "threads must be an integer"),
+    (dict(projection_passes=float("nan")), "projection_passes must be an integer"),
+    (dict(gravity=(0.0, -9.81)), "gravity must be a finite 3-vector"),
+    (dict(gravity=9.81), "gravity must be a finite 3-vector"),
+    (dict(gravity=(0.0, 0.0, float("nan"))), "gravity must be a finite 3-vector"),
+    (dict(bond_blocks="no"), "bond_blocks must be True or False"),
+    (dict(alert_ratio=float("inf")), "alert_ratio")])
 def test_bad_solver_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
         SolverSettings(**bad)
+
+
+def test_setters_and_walls_refuse_non_finite_or_misshapen_values():
+    """Each was accepted before: NaN spread through every later step, a NaN wall let the
+    spheres fall through it, a short array was zero-padded."""
+    from tcd.simulation import BondLaw
+    sim = Simulation([0.001, 0.001], [[0, 0, 0.01], [0, 0, 0.02]],
+                     walls=[walls.plane((0, 0, 0), (0, 0, 1))])
+    nan = float("nan")
+    for call, message in [
+            (lambda: sim.set_velocities([nan, 0, 0]), "velocities must be finite"),
+            (lambda: sim.set_velocities(np.ones((3, 3))), r"velocities must have shape \(2, 3\)"),
+            (lambda: sim.set_positions([[0, 0, nan], [0, 0, 0]]), "positions must be finite"),
+            (lambda: sim.set_external_force([0, 0, float("inf")]), "external force must be finite"),
+            (lambda: sim.set_angular_velocities(np.zeros((2, 2))), "angular velocities must have shape"),
+            (lambda: walls.plane((0, 0, nan), (0, 0, 1)), "point must be a finite 3-vector"),
+            (lambda: walls.plane((0, 0, 0), (0, 0, float("inf"))), "direction must be a finite"),
+            (lambda: walls.plane((0, 0, 0), (0, 0, 1), motion="constant", velocity=(0, 0, nan)),
+             "velocity must be a finite 3-vector"),
+            (lambda: walls.plane((0, 0, 0), (0, 0, 1), friction=nan), "friction must be finite"),
+            (lambda: walls.plane((0, 0, 0), (0, 0, 1), friction="rough"), "friction must be a number"),
+            (lambda: sim.set_walls([{"kind": "plane"}]), "not a tcd.walls.Wall"),
+            (lambda: sim.replace_wall(9, sim.walls[0]), "no wall 9"),
+            (lambda: BondLaw(friction_after_break=nan), "friction_after_break"),
+            (lambda: BondLaw(maxwell_stiffness=float("inf")), "maxwell_stiffness"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            call()
+    state = sim.state_dict()
+    bad = dict(state, **{"particles/x": np.full((2, 3), nan)})
+    with pytest.raises(ValueError, match="particles/x must be finite"):
+        sim.load_state_dict(bad)
+    with pytest.raises(ValueError, match="state lacks particles/radius"):
+        sim.load_state_dict({k: v for k, v in state.items() if k != "particles/radius"})
+    sim.step(3)                                  # the refusals left the simulation usable
+    assert np.all(np.isfinite(sim.positions()))
+    sim.close()
