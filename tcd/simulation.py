@@ -123,18 +123,9 @@ class SolverSettings:
             raise ValueError(f"bond_blocks must be True or False, got {self.bond_blocks!r}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
-        if not 1 <= self.threads <= MAX_PARTS:
-            raise ValueError(f"threads must be in [1, {MAX_PARTS}], got {self.threads}")
         if self.acceleration not in ACCELERATIONS:
             raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
                              f"{self.acceleration!r}")
-        if not self.overlap_slop >= 0 or self.projection_passes < 0:
-            raise ValueError("overlap_slop and projection_passes must be >= 0, got "
-                             f"{self.overlap_slop}, {self.projection_passes}")
-        if not self.alert_ratio > 0:
-            raise ValueError(f"alert_ratio must be positive, got {self.alert_ratio}")
-        if not self.neighbour_skin >= 0:
-            raise ValueError(f"neighbour_skin must be >= 0, got {self.neighbour_skin}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -242,8 +233,6 @@ class Simulation:
         self.systems = int(system[-1]) + 1
         if self.systems > MAX_SYSTEMS:
             raise ValueError(f"at most {MAX_SYSTEMS} systems in one simulation, got {self.systems}")
-        if friction < 0:
-            raise ValueError(f"friction must be >= 0, got {friction}")
         self.n = n
         self.settings = settings
         self.bond_law = bond_law
