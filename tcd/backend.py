@@ -6,6 +6,8 @@ sets to the same type, so no module spells `ti.f32` or `ti.f64` itself.
 """
 from __future__ import annotations
 
+import os
+
 import taichi as ti
 
 ARCHS = ("cpu", "gpu")
@@ -25,6 +27,9 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     on it: the serial schedule uses one thread, the partitioned one gives the same numbers on
     any number of threads.
 
+    The environment variable TCD_KERNEL_PROFILER=1 turns on Taichi's kernel profiler
+    (benchmarks/profile.py prints its table).
+
     A second call with the same settings is a no-op; a call with different settings raises,
     because Taichi cannot be re-initialised safely once fields exist.
     """
@@ -41,6 +46,8 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": int(cpu_threads)}
+    if os.environ.get("TCD_KERNEL_PROFILER", "") not in ("", "0"):
+        extra["kernel_profiler"] = True     # benchmarks/profile.py: time per kernel
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, **extra)
     _state["arch"], _state["precision"] = arch, precision

@@ -481,9 +481,11 @@ def contact_momentum(p: ti.template(), ct: ti.template(), k, beta):
 # --- step kernels ------------------------------------------------------------------------------
 @ti.kernel
 def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
-    """Keep the beginning-of-step velocities; add the impulse of external forces."""
-    g = ti.Vector([gx, gy, gz])
+    """Keep the beginning-of-step velocities; add the impulse of external forces.
+    (g is built inside the loop: a vector of f64 set before the parallel loop is handed to it
+    through Taichi's global temporaries, misaligned on CUDA: CUDA_ERROR_MISALIGNED_ADDRESS.)"""
     for i in range(p.count[None]):
+        g = ti.Vector([gx, gy, gz])
         p.v_old[i] = p.v[i]
         p.w_old[i] = p.w[i]
         if p.inv_mass[i] > 0.0:

@@ -10,6 +10,8 @@ All real fields use the precision chosen by `tcd.init`.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import taichi as ti
 
@@ -52,10 +54,29 @@ def _scalar(dtype=ti.i32):
     return ti.field(dtype, shape=())
 
 
+def aos_layout() -> bool:
+    """Whether the solver's records are laid out AoS (`_struct`): by default on the CPU (one
+    cache line serves a body's or a contact's record), SoA on the GPU (threads of a warp read
+    neighbouring addresses, and Taichi 1.7.4's CUDA code faults on f64 vectors inside an AoS
+    record: CUDA_ERROR_MISALIGNED_ADDRESS). The environment variable TCD_LAYOUT=aos|soa
+    overrides the default. No number depends on the layout."""
+    layout = os.environ.get("TCD_LAYOUT", "")
+    if layout not in ("", "aos", "soa"):
+        raise ValueError(f"TCD_LAYOUT={layout!r}: expected 'aos' or 'soa'")
+    if layout:
+        return layout == "aos"
+    return backend.arch() == "cpu"
+
+
 def _struct(n, *fields):
     """Place `fields` (created without shape) side by side, one record per row (AoS): the
-    solver reads all of them for a body or a contact at once, so one cache line serves them."""
-    ti.root.dense(ti.i, n).place(*fields)
+    solver reads all of them for a body or a contact at once, so one cache line serves them.
+    SoA (each field its own array) where `aos_layout()` says so. No number depends on it."""
+    if aos_layout():
+        ti.root.dense(ti.i, n).place(*fields)
+    else:
+        for f in fields:
+            ti.root.dense(ti.i, n).place(f)
     return fields
 
 

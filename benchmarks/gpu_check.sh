@@ -1,0 +1,58 @@
+#!/bin/bash
+# GPU checks and figures, run on a lent GPU machine (the device tool) from the repository root:
+#   bash benchmarks/gpu_check.sh quick|full
+# Logs go to $OUT (default /tmp/tcd_gpu). Where the machine has no taichi, wheels carried in
+# .whl/ (Python 3.12, see docs/measurements.md) are installed to /tmp/site first.
+set -u
+export PYTHONUNBUFFERED=1
+O=${OUT:-/tmp/tcd_gpu}; mkdir -p "$O"
+if [ -d .whl ] && ! python3 -c "import taichi" 2>/dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl || exit 1
+    export PYTHONPATH=/tmp/site:$PWD
+fi
+nvidia-smi -L | tee "$O/device.txt"
+stage() {   # stage NAME LIMIT_S command...: output in $O/NAME.txt, its tail and wall time shown
+    local name=$1 limit=$2; shift 2
+    local t0=$SECONDS
+    echo "== $name (limit $limit s)"
+    timeout "$limit" "$@" > "$O/$name.txt" 2>&1
+    local rc=$?
+    echo "rc=$rc wall=$((SECONDS - t0)) s" | tee -a "$O/$name.txt"
+    grep -v "^\[Taichi\]\|Graphical python shell" "$O/$name.txt" | tail -${TAIL:-6} | cut -c1-400
+}
+S='samples/leutner_seed{seed}_prepared.h5'
+case "${1:-quick}" in
+check)
+    TAIL=4 stage diag_trace 40 env TCD_SYNC_TRACE=1 python3 benchmarks/gpu_diag.py gpu f64
+    stage pytest_gpu 100 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
+        tests/test_engine.py tests/test_bonds.py tests/test_batch.py tests/test_partitioned.py
+    TAIL=30 stage profile_shear 45 python3 benchmarks/profile.py shear --sample "$S" --time 0.004 --arch gpu --top 20
+    ;;
+diag)
+    stage diag_default 40 python3 benchmarks/gpu_diag.py gpu f64
+    stage diag_f32 40 python3 benchmarks/gpu_diag.py gpu f32
+    TAIL=25 stage diag_aos_sanitizer 60 env TCD_LAYOUT=aos compute-sanitizer --tool memcheck \
+        --print-limit 2 python3 benchmarks/gpu_diag.py gpu f64
+    stage pytest_gpu 100 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
+        tests/test_engine.py tests/test_bonds.py tests/test_batch.py tests/test_partitioned.py
+    stage pour_2600_short 50 python3 -m tcd bench pour --particles 2600 --time 0.2 --arch gpu --json
+    TAIL=30 stage profile_shear 60 python3 benchmarks/profile.py shear --sample "$S" --time 0.004 --arch gpu --top 20
+    stage shear_batch5_short 60 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.01 --arch gpu --json
+    ;;
+quick)
+    stage pytest_gpu 100 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
+        tests/test_engine.py tests/test_bonds.py tests/test_batch.py tests/test_partitioned.py
+    TAIL=30 stage profile_pour 60 python3 benchmarks/profile.py pour --particles 2600 --time 0.05 --arch gpu --top 20
+    TAIL=30 stage profile_shear 70 python3 benchmarks/profile.py shear --sample "$S" --time 0.004 --arch gpu --top 20
+    ;;
+full)
+    stage pytest_gpu 120 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
+        tests/test_engine.py tests/test_bonds.py tests/test_batch.py tests/test_partitioned.py
+    stage pour_2600 90 python3 -m tcd bench pour --particles 2600 --time 1.0 --arch gpu --json
+    stage shear_5200 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
+    stage shear_batch5 90 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.02 --arch gpu --json
+    stage pour_1e6 120 python3 -m tcd bench pour --particles 1000000 --time 0.01 --arch gpu --json
+    ;;
+esac
+ls -la "$O"
