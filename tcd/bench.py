@@ -26,7 +26,7 @@ def _init(arch, precision):
 
 def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = CYLINDER_RADIUS,
                course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
-               threads: int = 2):
+               threads: int = 2, colouring: str = "auto"):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -36,7 +36,8 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
           walls.cylinder((0, 0, 0), (0, 0, 1), radius, (0.0, top + 0.01), name="mould")]
     sim = Simulation(r, x, walls=wl, friction=0.7,
                      settings=SolverSettings(tolerance=tolerance, max_sweeps=max_sweeps,
-                                             schedule=schedule, threads=threads),
+                                             schedule=schedule, threads=threads,
+                                             colouring=colouring),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -72,17 +73,20 @@ def _loop(sim, steps: int, per_system: bool = False):
         sweeps.append(sw)
         residuals.append(res)
     loop_s = time.perf_counter() - t0
-    return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals)
+    colours = rec.colours if steps > 1 else 0       # the last step's (coloured schedule)
+    return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals), colours
 
 
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
-         tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2) -> dict:
+         tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
+         colouring: str = "auto") -> dict:
     """`schedule`, `threads`: the solver's (SolverSettings); `threads` only counts for the
     partitioned schedule."""
     _init(arch, precision)
-    sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads)
+    sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
+                     colouring=colouring)
     steps = max(2, int(round(time / sim.settings.time_step)))
-    compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+    compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps)
     out = {
         "benchmark": "pour",
         "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
@@ -91,7 +95,8 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
         "final_residual": float(residuals[-1]) if len(residuals) else 0.0,
         "tolerance": tolerance, "arch": arch, "precision": precision,
-        "schedule": sim.schedule, "loop_wall_s": loop_s, "compile_wall_s": compile_s,
+        "schedule": sim.schedule, "colours": colours,
+        "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
     if sim.schedule == "partitioned":
@@ -144,7 +149,7 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
-          schedule: str = "auto", threads: int = 2) -> dict:
+          schedule: str = "auto", threads: int = 2, colouring: str = "auto") -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -171,7 +176,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     scn = parse_scenario(f'name = "bench_shear"\nseeds = {seeds}\n'
                          f'[backend]\narch = "{arch}"\nprecision = "{precision}"\n'
                          f'[solver]\ntolerance = {float(tolerance)!r}\nschedule = "{schedule}"\n'
-                         f'threads = {int(threads)}\n'
+                         f'threads = {int(threads)}\ncolouring = "{colouring}"\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
                          "<bench shear>")
     sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
@@ -182,7 +187,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     particles = sim.n
     bonds = sum(int(ph.info["bonds_created"]) for ph in phases)
     steps = max(2, int(round(time / sim.settings.time_step)))
-    compile_s, loop_s, sweeps, residuals = _loop(sim, steps, per_system=True)
+    compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps, per_system=True)
     out = {
         "benchmark": "shear", "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
         "particles": particles, "samples": samples, "steps": steps,
@@ -191,7 +196,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "mean_sweeps": float(sweeps.mean()),
         "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
         "final_residual": float(residuals[-1].max()), "tolerance": tolerance, "arch": arch,
-        "precision": precision, "schedule": sim.schedule,
+        "precision": precision, "schedule": sim.schedule, "colours": colours,
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
         "contacts": int(sim.contact_arrays()["i"].size),
@@ -208,7 +213,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
 
 def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: str = "cpu",
             precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
-            progress=None, schedule: str = "auto", threads: int = 2) -> dict:
+            progress=None, schedule: str = "auto", threads: int = 2,
+            colouring: str = "auto") -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after 0.3 s of pouring.
@@ -236,12 +242,13 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     rows = []
     for n in sizes:
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
-        sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads)
+        sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads,
+                         colouring=colouring)
         t0 = time.perf_counter()
         for _ in range(int(0.3 / sim.settings.time_step)):
             sim.step()
         pre_s = time.perf_counter() - t0
-        compile_s, loop_s, sweeps, residuals = _loop(sim, steps)
+        compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps)
         contacts = int(sim.contact_arrays()["i"].size)
         rows.append({"particles": int(n), "seconds_per_particle_step": loop_s / (n * (steps - 1)),
                      "mean_sweeps": float(sweeps.mean()), "final_residual": float(residuals[-1]),

@@ -288,11 +288,11 @@ def _run_bench(args) -> dict:
                   file=sys.stderr, flush=True)
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
                      tolerance=args.tolerance, out=args.out, progress=done,
-                     schedule=args.schedule, threads=args.threads)
+                     schedule=args.schedule, threads=args.threads, colouring=args.colouring)
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
-                       threads=args.threads)
+                       threads=args.threads, colouring=args.colouring)
         if getattr(args, "samples", 1) > 1:
             options["samples"] = args.samples
         if getattr(args, "sample", None):
@@ -490,6 +490,9 @@ def _schedule_options(parser) -> None:
                         "CPU, coloured on the GPU)")
     parser.add_argument("--threads", type=_positive_int, default=2, metavar="P",
                         help="threads of the partitioned schedule (its numbers depend on P)")
+    parser.add_argument("--colouring", choices=("auto", "greedy", "rounds"), default="auto",
+                        help="colouring of the coloured schedule: greedy (serial), rounds "
+                        "(parallel); default greedy on the CPU, rounds on the GPU")
 
 
 def _error(message) -> int:

@@ -111,7 +111,8 @@ class SolverConfig(_Model):
     (true, the default; false: bond by bond, which stalls on the bonds of light grains);
     neighbour_skin: skin of the broad phase's neighbour list / smallest radius (cost only:
     the contacts are the same for any skin; fast grains get room for about two steps of
-    their reach)."""
+    their reach); colouring (coloured schedule): "greedy" (serial, fewest colours), "rounds"
+    (parallel) or "auto" (greedy on the CPU, rounds on the GPU)."""
     # bounds: sane physics, and integers that fit the solver's 32-bit kernel arguments
     time_step: float = Field(2e-4, ge=1e-7, le=0.1)
     theta: float = Field(1.0, ge=0.5, le=1.0)
@@ -127,6 +128,7 @@ class SolverConfig(_Model):
     projection_passes: int = Field(2, ge=0)
     bond_blocks: bool = True
     neighbour_skin: float = Field(2.0, ge=0)
+    colouring: Literal["auto", "greedy", "rounds"] = "auto"
 
     @model_validator(mode="after")
     def _check(self) -> "SolverConfig":
@@ -146,7 +148,7 @@ class SolverConfig(_Model):
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,
                               bond_blocks=self.bond_blocks,
-                              neighbour_skin=self.neighbour_skin)
+                              neighbour_skin=self.neighbour_skin, colouring=self.colouring)
 
 
 class MaterialConfig(_Model):

@@ -111,16 +111,47 @@ def grid_scatter(p, g, nb, half_alert: float) -> None:
     grid_walk(p, g, nb, half_alert, True)
 
 
+SCAN_CHUNK = 1024               # entries per thread of the parallel exclusive scan
+_scan_scratch = {"field": None, "size": 0}
+
+
 @ti.kernel
-def exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32) -> ti.i32:
-    """start[k] = sum(count[:k]) for k <= n (serial: one pass, no atomics)."""
-    s = 0
+def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32,
+                    partial: ti.template()) -> ti.i32:
+    """start[k] = sum(count[:k]) for k <= n: chunk sums in parallel, their scan (serial, one
+    entry per SCAN_CHUNK), then each chunk's own scan in parallel (integers: exact, in any
+    order)."""
+    for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+        s = 0
+        for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+            s += count[k]
+        partial[c] = s
     ti.loop_config(serialize=True)
-    for k in range(n):
-        start[k] = s
-        s += count[k]
-    start[n] = s
-    return s
+    for _ in range(1):
+        s = 0
+        for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+            t = partial[c]
+            partial[c] = s
+            s += t
+        start[n] = s
+    for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+        s = partial[c]
+        for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+            start[k] = s
+            s += count[k]
+    return start[n]
+
+
+def exclusive_scan(count, start, n: int) -> int:
+    """start[k] = sum(count[:k]) for k <= n (in parallel, see _exclusive_scan); the total."""
+    need = n // SCAN_CHUNK + 2
+    if _scan_scratch["size"] < need:
+        size = 64
+        while size < need:
+            size *= 2
+        _scan_scratch["field"] = ti.field(ti.i32, shape=size)
+        _scan_scratch["size"] = size
+    return _exclusive_scan(count, start, n, _scan_scratch["field"])
 
 
 def grid_scan(g) -> int:

@@ -26,6 +26,7 @@ from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
 ACCELERATIONS = ("nncg", "none")
+COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
 # what load_state_dict needs of a state (state_dict writes these and more)
 STATE_KEYS = tuple("particles/" + k for k in ("x", "v", "w", "radius", "layer", "inv_mass",
@@ -87,7 +88,10 @@ class SolverSettings:
     neighbour_skin: skin of the broad phase's neighbour list as a fraction of the smallest
     radius (contacts are picked from the list every step, the grid is only walked when a
     particle may have moved more than its margin, half the skin or three steps of its reach
-    for a fast grain; the contacts are the same for any skin, only the cost changes)."""
+    for a fast grain; the contacts are the same for any skin, only the cost changes);
+    colouring (coloured schedule): "greedy" (one thread, canonical order: fewest colours),
+    "rounds" (in parallel, solver.colour_rounds_*: a few more colours, no serial pass) or
+    "auto" (greedy on the CPU, rounds on the GPU)."""
     time_step: float = 2e-4
     theta: float = 1.0
     tolerance: float = 1e-4
@@ -102,6 +106,7 @@ class SolverSettings:
     projection_passes: int = 2
     bond_blocks: bool = True
     neighbour_skin: float = 2.0
+    colouring: str = "auto"
 
     def __post_init__(self):
         _finite("time_step", self.time_step, positive=True)
@@ -123,6 +128,8 @@ class SolverSettings:
             raise ValueError(f"bond_blocks must be True or False, got {self.bond_blocks!r}")
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if self.colouring not in COLOURINGS:
+            raise ValueError(f"colouring must be one of {COLOURINGS}, got {self.colouring!r}")
         if self.acceleration not in ACCELERATIONS:
             raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
                              f"{self.acceleration!r}")
@@ -420,7 +427,13 @@ class Simulation:
             if s.bond_blocks:
                 sk.bonds_factor(p, bd)
         ck.contact_geometry(p, wl, ct, h, theta, self.friction)
-        sk.apply_warm_start(p, ct, bd)
+        if self.schedule == "coloured":
+            ncol = self._colour()
+            for c in range(ncol):       # colour by colour: each colour's items share no body
+                sk.warm_start_colour(p, ct, bd, self.colours, c, self._blocks())
+        else:
+            ncol = 0
+            sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
                            1 if s.acceleration == "nncg" else 0, 1 if s.bond_blocks else 0)
@@ -429,13 +442,18 @@ class Simulation:
             self._solve_partitioned()
             colours = 0
         else:
-            colours = self._solve_coloured()
+            colours = self._solve_coloured(ncol)
         if bd.total[None] > 0:
             sk.bonds_finish(p, wl, bd, h, theta, t_end, *law_args, law.yield_stress)
         sk.integrate(p, h, theta)
-        if s.projection_passes > 0:
-            sk.project_overlaps(p, wl, ct, h, s.overlap_slop * 2.0 * self.r_min,
-                                s.projection_passes)
+        slop = s.overlap_slop * 2.0 * self.r_min
+        if s.projection_passes > 0 and self.schedule == "coloured":
+            for _ in range(s.projection_passes):
+                for c in range(colours):
+                    sk.project_overlaps_colour(p, wl, ct, bd, self.colours, h, slop, c,
+                                               self._blocks())
+        elif s.projection_passes > 0:
+            sk.project_overlaps(p, wl, ct, h, slop, s.projection_passes)
         sk.wall_forces(p, wl, ct, h)
         ck.save_history(ct, self.n)
         if self._refit_contacts:
@@ -461,22 +479,50 @@ class Simulation:
                             s.tolerance, s.check_every, 1 if s.acceleration == "nncg" else 0,
                             blocks)
 
-    def _solve_coloured(self) -> int:
+    def _blocks(self) -> int:
+        return 1 if self.settings.bond_blocks else 0
+
+    def _colour(self) -> int:
+        """Colour this step's bond items and contacts (greedy or by rounds, see
+        SolverSettings.colouring); the number of colours."""
         s = self.settings
-        p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
-        blocks = 1 if s.bond_blocks else 0
+        p, ct, bd = self.particles, self.contacts, self.bonds
+        blocks = self._blocks()
         nb = self.n if blocks else int(bd.total[None])
         need = ct.capacity + (self.particles.capacity if blocks else bd.capacity)
         if self.colours is None or self.colours.capacity < need:
             release(self.colours)
             self.colours = acquire(ColourSet, need, self.particles.capacity)
         cs = self.colours
-        sk.colour_greedy(self.n, ct, bd, cs, self.stats, blocks)
+        rounds = s.colouring == "rounds" or (s.colouring == "auto" and backend.arch() != "cpu")
+        if rounds:
+            sk.colour_rounds_init(self.n, ct, bd, cs, blocks)
+            active = int(cs.active[None])
+            ncol, it = 0, 0
+            while int(cs.coloured[None]) < active:
+                if ncol == sk.MAX_COLOURS:
+                    self.stats.colour_overflow[None] = 1
+                    break
+                for _ in range(sk.COLOUR_PASSES):
+                    sk.colour_rounds_pass(self.n, ct, bd, cs, ncol, it, blocks)
+                    it += 1
+                ncol += 1
+            else:
+                sk.colour_rounds_order(self.n, ct, bd, cs, self.stats, ncol, blocks)
+        else:
+            sk.colour_greedy(self.n, ct, bd, cs, self.stats, blocks)
         if self.stats.colour_overflow[None]:
             raise CapacityError("contact colouring needs more than "
                                 f"{sk.MAX_COLOURS} colours (a body with that many contacts)")
-        ncol = int(self.stats.colours[None])
-        items = nb + int(ct.total[None])
+        self._colour_items = nb + int(ct.total[None])
+        return int(self.stats.colours[None])
+
+    def _solve_coloured(self, ncol: int) -> int:
+        s = self.settings
+        p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
+        blocks = self._blocks()
+        cs = self.colours
+        items = self._colour_items
         sweeps, residual = 0, 0.0
         while True:
             for c in range(ncol):

@@ -24,7 +24,7 @@ contact updates are plain load/store (no atomics): no two threads ever touch one
 import taichi as ti
 
 from . import contacts, laws
-from .state import COLOUR_WORDS, MAX_COLOURS
+from .state import COLOUR_WORDS, MAX_COLOURS, RESIDUAL_CHUNK, WALL_CHUNK
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
 SYSTEM_SPREAD = 1024         # loop iterations per batched system (see nlgs_serial)
@@ -754,17 +754,193 @@ def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.
 
 @ti.kernel
 def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
-    """Relative impulse change of the last sweep, summed in item order (deterministic)."""
-    d = 0.0
-    r = 0.0
+    """Relative impulse change of the last sweep: partial sums over fixed chunks of
+    RESIDUAL_CHUNK items in item order (in parallel), then the partials in chunk order
+    (deterministic: the same sums in the same order whatever the thread timing)."""
+    for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
+        d = 0.0
+        r = 0.0
+        for q in range(c * RESIDUAL_CHUNK, ti.min(count, (c + 1) * RESIDUAL_CHUNK)):
+            d += cs.change[q][0]
+            r += cs.change[q][1]
+        cs.partial[c] = ti.Vector([d, r])
     ti.loop_config(serialize=True)
-    for q in range(count):
-        d += cs.change[q][0]
-        r += cs.change[q][1]
-    res = 0.0
-    if r > 0.0:
-        res = d / r
-    return res
+    for _ in range(1):
+        d = 0.0
+        r = 0.0
+        for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
+            d += cs.partial[c][0]
+            r += cs.partial[c][1]
+        res = 0.0
+        if r > 0.0:
+            res = d / r
+        cs.residual[None] = res
+    return cs.residual[None]
+
+
+# --- parallel colouring by rounds (GPU) ----------------------------------------------------------
+# Round r gives colour r to a set of items that share no dynamic body: in each pass every
+# waiting item whose bodies are all unclaimed in this round bids for them (atomic max of a
+# key: the pass, then a fixed hash of the item index), and an item that holds the best bid on
+# every one of its bodies takes colour r and claims them. Max is order-independent, so the
+# colours do not depend on thread timing. COLOUR_PASSES passes per round; the rounds go on
+# until every active item has a colour. Bodies of an item: a contact's two particles (a wall
+# is not a body), a bond's two particles, or a particle's bond block: the particle and all its
+# intact bonded neighbours (as block_mask).
+COLOUR_PASSES = 4
+
+
+@ti.func
+def item_body_count(ct: ti.template(), bd: ti.template(), q, nb, blocks: ti.template()):
+    count = 2
+    if ti.static(blocks == 1):
+        if q < nb:
+            count = 1 + particle_bond_count(bd, q)
+    return count
+
+
+@ti.func
+def item_body(ct: ti.template(), bd: ti.template(), q, nb, n, k, blocks: ti.template()):
+    """The k-th body of item q, or -1 (a wall, a broken bond's end)."""
+    b = -1
+    is_block = 0
+    if ti.static(blocks == 1):
+        if q < nb:
+            is_block = 1
+            if k == 0:
+                b = q
+            else:
+                e = particle_bond(bd, q, k - 1)
+                if bd.state[e] == INTACT:
+                    b = bd.i[e] + bd.j[e] - q
+    if is_block == 0:
+        if q < nb:
+            b = bd.i[q] if k == 0 else bd.j[q]
+        else:
+            b = ct.i[q - nb] if k == 0 else ct.j[q - nb]
+        if b >= n:
+            b = -1
+    return b
+
+
+@ti.func
+def colour_key(it, q):
+    h = (ti.i64(q) * ti.i64(2654435761)) % ti.i64(4294967296)     # a bijection of q
+    return ti.i64(it) * ti.i64(4294967296) + (ti.i64(4294967295) - h)
+
+
+@ti.kernel
+def colour_rounds_init(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                       blocks: ti.template()):
+    """Every item waiting (-2) or inactive (-1: broken bond, particle without intact bonds);
+    bodies unclaimed; colour counts zero."""
+    for b in range(n):
+        cs.claim[b] = -1
+        cs.best[b] = ti.i64(-1)
+    for c in range(MAX_COLOURS + 1):
+        cs.start[c] = 0
+    cs.coloured[None] = 0
+    cs.active[None] = 0
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
+    for q in range(nb + ct.total[None]):
+        active = 1
+        if q < nb:
+            if ti.static(blocks == 1):
+                _, count = block_mask(bd, cs, q, 0)
+                if count == 0:
+                    active = 0
+            elif bd.state[q] != INTACT:
+                active = 0
+        cs.item_colour[q] = -2 if active == 1 else -1
+        cs.change[q] = ti.Vector([0.0, 0.0])
+        if active == 1:
+            cs.active[None] += 1
+
+
+@ti.kernel
+def colour_rounds_pass(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                       r: ti.i32, it: ti.i32, blocks: ti.template()):
+    """One pass of round r: bids, then takes."""
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
+    for q in range(nb + ct.total[None]):
+        if cs.item_colour[q] == -2:
+            free = 1
+            m = item_body_count(ct, bd, q, nb, blocks)
+            for k in range(m):
+                b = item_body(ct, bd, q, nb, n, k, blocks)
+                if b >= 0 and cs.claim[b] == r:
+                    free = 0
+            if free == 1:
+                key = colour_key(it, q)
+                for k in range(m):
+                    b = item_body(ct, bd, q, nb, n, k, blocks)
+                    if b >= 0:
+                        ti.atomic_max(cs.best[b], key)
+    for q in range(nb + ct.total[None]):
+        if cs.item_colour[q] == -2:
+            key = colour_key(it, q)
+            win = 1
+            m = item_body_count(ct, bd, q, nb, blocks)
+            for k in range(m):
+                b = item_body(ct, bd, q, nb, n, k, blocks)
+                if b >= 0 and (cs.best[b] != key or cs.claim[b] == r):
+                    win = 0
+            if win == 1:
+                cs.item_colour[q] = r
+                for k in range(m):
+                    b = item_body(ct, bd, q, nb, n, k, blocks)
+                    if b >= 0:
+                        cs.claim[b] = r
+                cs.start[r + 1] += 1
+                cs.coloured[None] += 1
+
+
+@ti.kernel
+def colour_rounds_order(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                        st: ti.template(), ncol: ti.i32, blocks: ti.template()):
+    """CSR of the items by colour (within a colour in no fixed order: its items share no
+    body, so the order changes no number); sets st.colours."""
+    ti.loop_config(serialize=True)
+    for c in range(MAX_COLOURS):
+        cs.start[c + 1] += cs.start[c]
+    for c in range(MAX_COLOURS):
+        cs.cursor[c] = cs.start[c]
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
+    for q in range(nb + ct.total[None]):
+        c = cs.item_colour[q]
+        if c >= 0:
+            cs.order[ti.atomic_add(cs.cursor[c], 1)] = q
+    st.colours[None] = ncol
+    st.colour_overflow[None] = 0
+
+
+@ti.kernel
+def warm_start_colour(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                      c: ti.i32, blocks: ti.template()):
+    """The previous step's impulses of colour c's items applied to their bodies (in parallel:
+    they share no body). A bond block applies the bonds whose first end is its particle, so
+    each bond once."""
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = p.count[None]
+    for s in range(cs.start[c], cs.start[c + 1]):
+        q = cs.order[s]
+        if q < nb:
+            if ti.static(blocks == 1):
+                for e in range(bd.start[q], bd.start[q + 1]):
+                    if bd.state[e] == INTACT:
+                        apply_impulse(p, bd.i[e], bd.j[e], bd.normal[e], bd.impulse[e])
+            else:
+                apply_impulse(p, bd.i[q], bd.j[q], bd.normal[q], bd.impulse[q])
+        else:
+            k = q - nb
+            apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
 
 
 # --- bonds: per-step frame and compliance, and post-solve update with yield -------------------
@@ -878,33 +1054,63 @@ def project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
     ti.loop_config(serialize=True)
     for s in range(passes):
         for k in range(nc):
-            i, j = ct.i[k], ct.j[k]
-            wi = p.inv_mass[i]
-            if j < n:
-                wj = p.inv_mass[j]
-                d = p.x[j] - p.x[i]
-                dist = d.norm()
-                gap = dist - p.radius[i] - p.radius[j]
-                if gap < -slop and dist > 0.0 and wi + wj > 0.0:
-                    nn = d / dist
-                    c = (-gap - slop) / (wi + wj)
-                    p.x[i] = p.x[i] - (c * wi) * nn
-                    p.x[j] = p.x[j] + (c * wj) * nn
-            else:
-                kw = j - n
-                gap, nn, valid = contacts.wall_geometry(wl, kw, p.x[i] - h * wl.velocity[kw],
-                                                        p.radius[i])
-                if valid == 1 and gap < -slop and wi > 0.0:
-                    p.x[i] = p.x[i] + (gap + slop) * nn
+            project_contact(p, wl, ct, k, n, h, slop)
+
+
+@ti.kernel
+def project_overlaps_colour(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                            bd: ti.template(), cs: ti.template(), h: float, slop: float,
+                            c: ti.i32, blocks: ti.template()):
+    """project_overlaps for the contacts of colour c at once (they share no body): the
+    coloured schedule's projection, colour after colour, `passes` times."""
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = p.count[None]
+    for s in range(cs.start[c], cs.start[c + 1]):
+        q = cs.order[s]
+        if q >= nb:
+            project_contact(p, wl, ct, q - nb, p.count[None], h, slop)
+
+
+@ti.func
+def project_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n, h, slop):
+    i, j = ct.i[k], ct.j[k]
+    wi = p.inv_mass[i]
+    if j < n:
+        wj = p.inv_mass[j]
+        d = p.x[j] - p.x[i]
+        dist = d.norm()
+        gap = dist - p.radius[i] - p.radius[j]
+        if gap < -slop and dist > 0.0 and wi + wj > 0.0:
+            nn = d / dist
+            c = (-gap - slop) / (wi + wj)
+            p.x[i] = p.x[i] - (c * wi) * nn
+            p.x[j] = p.x[j] + (c * wj) * nn
+    else:
+        kw = j - n
+        gap, nn, valid = contacts.wall_geometry(wl, kw, p.x[i] - h * wl.velocity[kw],
+                                                p.radius[i])
+        if valid == 1 and gap < -slop and wi > 0.0:
+            p.x[i] = p.x[i] + (gap + slop) * nn
 
 
 @ti.kernel
 def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float):
-    """Force of the particles on each wall over the step: sum of contact impulses / H
-    (outer loop over walls, fixed-order inner sum: deterministic)."""
-    for w in range(wl.count[None]):
+    """Force of the particles on each wall over the step: sum of contact impulses / H. Partial
+    sums per (wall, chunk of WALL_CHUNK contacts) in parallel, then per wall over its chunks
+    in chunk order (deterministic)."""
+    nw = wl.count[None]
+    for t in range(nw * ((ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK)):
+        chunks = (ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK
+        w, c = t // chunks, t % chunks
         s = ti.Vector([0.0, 0.0, 0.0])
-        for k in range(ct.total[None]):
+        for k in range(c * WALL_CHUNK, ti.min(ct.total[None], (c + 1) * WALL_CHUNK)):
             if ct.j[k] == p.count[None] + w:
                 s += ct.impulse[k]
+        ct.wall_partial[t] = s
+    for w in range(nw):
+        chunks = (ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK
+        s = ti.Vector([0.0, 0.0, 0.0])
+        for c in range(chunks):
+            s += ct.wall_partial[w * chunks + c]
         wl.force[w] = s / h

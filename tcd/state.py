@@ -23,6 +23,8 @@ MAX_PARTS = 64              # threads of the partitioned Gauss-Seidel (tcd/parti
 SLAB_BINS = 4096            # its work histogram across the sample, cut into slabs
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
+RESIDUAL_CHUNK = 256       # items per partial sum of the coloured schedule's residual
+WALL_CHUNK = 4096          # contacts per partial sum of the wall forces
 
 
 def capacity_class(n: int, minimum: int = 64) -> int:
@@ -258,6 +260,9 @@ class Contacts:
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
         self.total = _scalar()
         self.prev_total = _scalar()
+        # wall forces: partial sums per (wall, chunk of WALL_CHUNK contacts)
+        self.wall_partial = ti.Vector.field(3, backend.real(),
+                                            shape=MAX_WALLS * (capacity // WALL_CHUNK + 1))
 
     def reset(self):
         self.total[None] = 0
@@ -326,6 +331,14 @@ class ColourSet:
         self.item_colour, self.order = _int(capacity), _int(capacity)
         self.start, self.cursor = _int(MAX_COLOURS + 1), _int(MAX_COLOURS)
         self.change = ti.Vector.field(2, backend.real(), shape=capacity)
+        # parallel colouring by rounds (solver.colour_rounds_*): per body, the round that
+        # claimed it and the best bid of the current pass; coloured/active item counts
+        self.claim = _int(particle_capacity)
+        self.best = _int(particle_capacity, ti.i64)
+        self.coloured, self.active = _scalar(), _scalar()
+        # the residual's partial sums, one per chunk of RESIDUAL_CHUNK items
+        self.partial = ti.Vector.field(2, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
+        self.residual = ti.field(backend.real(), shape=())
 
     def reset(self):
         pass

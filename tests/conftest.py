@@ -47,6 +47,15 @@ def benchmark_script():
     return load
 
 
+def schedule_settings(name: str) -> dict:
+    """SolverSettings keywords of a schedule name of the parametrised tests: "serial",
+    "partitioned", "coloured" (its colouring as on the backend), "coloured-greedy",
+    "coloured-rounds" (the parallel colouring, the GPU's, run on the CPU too)."""
+    if name.startswith("coloured-"):
+        return {"schedule": "coloured", "colouring": name.split("-", 1)[1]}
+    return {"schedule": name}
+
+
 @pytest.fixture
 def schedule_on_backend(backend):
     """check(schedule): skip a test of the CPU-only partitioned schedule on the GPU."""

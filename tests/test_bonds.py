@@ -9,6 +9,8 @@ from tcd import laws, walls
 from tcd.simulation import BondLaw, Simulation, SolverSettings
 from tcd.state import capacity_class, put
 
+from conftest import schedule_settings
+
 K_M, ETA_M, K_K, ETA_K = 2e6, 2e7, 2e6, 2e7
 SIGMA_Y = 2.7e6
 NU = 0.3
@@ -310,7 +312,8 @@ def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_origin
 
 
 @pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
-                                            ("burgers", "partitioned"), ("burgers", "coloured")])
+                                            ("burgers", "partitioned"), ("burgers", "coloured"),
+                                            ("burgers", "coloured-rounds")])
 def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule,
                                                                  schedule_on_backend):
     """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two
@@ -323,7 +326,7 @@ def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule
     x = np.array([[0.0, 0, 0], [R + r, 0, 0], [2 * (R + r), 0, 0]])
     sim = Simulation([R, r, R], x, fixed=[True, False, True],
                      settings=SolverSettings(time_step=h, tolerance=1e-4, gravity=(0, 0, 0),
-                                             schedule=schedule),
+                                             **schedule_settings(schedule)),
                      bond_law=BondLaw(mode=mode), domain=((-0.01,) * 3, (0.03, 0.01, 0.01)))
     assert sim.create_bonds(gap_tolerance=1e-7) == 2
     F = 0.5                                          # N, far below the yield force (8.5 N)

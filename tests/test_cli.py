@@ -209,14 +209,15 @@ def test_info_not_hdf5(tmp_path, capsys):
 @pytest.mark.parametrize("argv, expected", [
     (["pour", "--particles", "300", "--time", "0.1"],
      ("pour", dict(particles=300, time=0.1, arch="cpu", precision="f64", tolerance=1e-4, seed=1,
-                   schedule="auto", threads=2))),
+                   schedule="auto", threads=2, colouring="auto"))),
     (["shear", "--precision", "f32", "--seed", "7", "--tolerance", "1e-3", "--schedule",
       "partitioned", "--threads", "4"],
      ("shear", dict(particles=5200, arch="cpu", precision="f32", tolerance=1e-3, seed=7,
-                    schedule="partitioned", threads=4))),
-    (["scaling", "--sizes", "100,200", "--steps", "5", "--out", "x"],
+                    schedule="partitioned", threads=4, colouring="auto"))),
+    (["scaling", "--sizes", "100,200", "--steps", "5", "--out", "x", "--schedule", "coloured",
+      "--colouring", "rounds"],
      ("scaling", dict(sizes=[100, 200], steps=5, arch="cpu", precision="f64", tolerance=1e-4,
-                      out="x", schedule="auto", threads=2))),
+                      out="x", schedule="coloured", threads=2, colouring="rounds"))),
 ])
 def test_bench_passes_keyword_options(argv, expected, stub, capsys):
     calls = []

@@ -7,6 +7,8 @@ import pytest
 from tcd import packing, solver as sk, walls
 from tcd.simulation import Simulation, SolverSettings, default_cell_size
 
+from conftest import schedule_settings
+
 G = 9.81
 RHO = 2600.0
 H = 2e-4
@@ -147,14 +149,17 @@ def test_neighbour_skin_changes_no_number():
     assert c[2] < b[2] < a[2] < 1500, (a[2], b[2], c[2])
 
 
+@pytest.mark.parametrize("colouring", ["greedy", "rounds"])
 @pytest.mark.parametrize("blocks", [False, True])
-def test_colouring_never_shares_a_dynamic_body(blocks):
+def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
     """Items: bonds (or, with blocks, each particle's bond block: the particle and all its
-    bonded neighbours), then contacts. No two items of one colour share a dynamic body."""
+    bonded neighbours), then contacts. No two items of one colour share a dynamic body, with
+    the serial greedy colouring and the parallel one by rounds."""
     r, x = random_cloud(600, 4, box=0.04)
     wl = [walls.plane((0, 0, 0.0), (0, 0, 1)), walls.plane((0, 0, 0.04), (0, 0, -1))]
     sim = Simulation(r, x, walls=wl, settings=SolverSettings(alert_ratio=0.5, schedule="coloured",
-                                                             bond_blocks=blocks),
+                                                             bond_blocks=blocks,
+                                                             colouring=colouring),
                      domain=((0, 0, 0), (0.04, 0.04, 0.04)))
     sim.create_bonds(gap_tolerance=0.0)             # overlapping pairs become bonds
     sim.step()                                       # colours bonds and contacts together
@@ -230,15 +235,16 @@ def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
         assert spin < v @ down
 
 
-@pytest.mark.parametrize("schedule", ["serial", "partitioned"])
+@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured-greedy", "coloured-rounds"])
 def test_vertical_column_carries_the_weight_above_each_contact(schedule, tol, schedule_on_backend):
-    """(partitioned: two slabs of spheres, the contact between them a boundary item)"""
+    """(partitioned: two slabs of spheres, the contact between them a boundary item;
+    coloured: the two colourings, warm start and projection colour by colour)"""
     schedule_on_backend(schedule)
     r = np.array([0.008, 0.004, 0.0056, 0.001, 0.0028, 0.008])
     z = np.cumsum(2 * r) - r
     x = np.column_stack([np.zeros(len(r)), np.zeros(len(r)), z])
     sim = Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
-                     settings=tight(schedule=schedule, threads=2),
+                     settings=tight(**schedule_settings(schedule), threads=2),
                      domain=((-0.01, -0.01, -0.01), (0.01, 0.01, 0.1)))
     sim.step(10)
     c = sim.contact_arrays()
