@@ -30,7 +30,7 @@ S='samples/leutner_seed{seed}_prepared.h5'
 case "${1:-quick}" in
 final)
     stage pytest_gpu 130 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
-        --timeout 100 --durations 12 -rfE tests/test_engine.py tests/test_bonds.py tests/test_batch.py
+        --timeout 100 --durations 12 -rfE -v tests/test_engine.py tests/test_bonds.py tests/test_batch.py
     # a failure of the parallel colouring (new, checked on the CPU only) falls back to greedy
     stage shear_5200 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json \
         || stage shear_5200_greedy 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --colouring greedy
