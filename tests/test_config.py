@@ -29,6 +29,7 @@ check_every = 5
 schedule = "coloured"
 alert_ratio = 0.2
 gravity = 9.8
+colouring = "rounds"
 
 [material]
 density = 2500
@@ -196,7 +197,7 @@ def test_to_settings_and_to_law_carry_the_values():
     st = s.solver.to_settings()
     assert (st.time_step, st.theta, st.tolerance, st.max_sweeps, st.check_every) == \
         (1e-4, 0.75, 1e-5, 500, 5)
-    assert (st.schedule, st.alert_ratio) == ("coloured", 0.2)
+    assert (st.schedule, st.alert_ratio, st.colouring) == ("coloured", 0.2, "rounds")
     assert tuple(st.gravity) == (0.0, 0.0, -9.8)
     law = s.bond.to_law()
     assert law.mode == "burgers"
@@ -442,3 +443,9 @@ def test_a_derived_sphere_count_has_the_same_bound_as_a_given_one(tmp_path):
     """size_scale = 0.001 with particles_per_layer = 0 asked for 12.2 TiB of radii."""
     err = refusal(tmp_path, MINIMAL.replace('kind = "prepare"', 'kind = "prepare"\nsize_scale = 0.001'))
     assert_names(err, "stage[1].size_scale", "spheres in a binder layer", "at most 1e+07")
+
+
+def test_unknown_colouring_is_refused():
+    text = FULL.replace('colouring = "rounds"', 'colouring = "random"')
+    with pytest.raises(ScenarioError, match="colouring"):
+        parse_scenario(text)
