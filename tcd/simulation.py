@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from typing import Sequence
 
 import numpy as np
@@ -25,6 +26,16 @@ from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contact
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
+
+
+def _auto_arch() -> str:
+    """The backend whose defaults "auto" settings follow: the one running, unless the
+    environment variable TCD_AUTO=gpu asks for the GPU's choices (coloured schedule, colouring
+    by rounds) on the CPU, to run the GPU's algorithms where no GPU is (tests: --auto gpu)."""
+    auto = os.environ.get("TCD_AUTO", "")
+    if auto not in ("", "cpu", "gpu"):
+        raise ValueError(f"TCD_AUTO={auto!r}: expected 'cpu' or 'gpu'")
+    return auto or backend.arch()
 ACCELERATIONS = ("nncg", "none")
 COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
@@ -251,7 +262,7 @@ class Simulation:
         self.alert = settings.alert_ratio * self.r_min
         self.schedule = settings.schedule
         if self.schedule == "auto":
-            self.schedule = "serial" if backend.arch() == "cpu" else "coloured"
+            self.schedule = "serial" if _auto_arch() == "cpu" else "coloured"
         if self.schedule == "partitioned" and backend.arch() != "cpu":
             raise ValueError("the partitioned schedule runs CPU threads that wait for each other; "
                              "on the GPU use schedule = \"coloured\" (or \"auto\")")
@@ -494,7 +505,7 @@ class Simulation:
             release(self.colours)
             self.colours = acquire(ColourSet, need, self.particles.capacity)
         cs = self.colours
-        rounds = s.colouring == "rounds" or (s.colouring == "auto" and backend.arch() != "cpu")
+        rounds = s.colouring == "rounds" or (s.colouring == "auto" and _auto_arch() != "cpu")
         if rounds:
             sk.colour_rounds_init(self.n, ct, bd, cs, blocks)
             active = int(cs.active[None])
