@@ -536,8 +536,8 @@ class Simulation:
         items = self._colour_items
         sweeps, residual = 0, 0.0
         while True:
-            for c in range(ncol):
-                sk.solve_colour(p, wl, ct, bd, cs, c, blocks)
+            for base in range(0, ncol, sk.COLOURS_PER_LAUNCH):
+                sk.solve_colours(p, wl, ct, bd, cs, base, blocks, sk.COLOURS_PER_LAUNCH)
             sweeps += 1
             if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
                 residual = sk.sweep_residual(cs, items)

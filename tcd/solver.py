@@ -735,21 +735,42 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
 @ti.kernel
 def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                  cs: ti.template(), c: ti.i32, blocks: ti.template()):
+    """The items of colour c at once (they share no dynamic body)."""
+    for s in range(cs.start[c], cs.start[c + 1]):
+        solve_item(p, wl, ct, bd, cs, s, blocks)
+
+
+@ti.kernel
+def solve_colours(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                  cs: ti.template(), base: ti.i32, blocks: ti.template(), k: ti.template()):
+    """Colours base .. base + k - 1 one after the other, as solve_colour, in ONE kernel call
+    (k parallel loops unrolled: one Python launch instead of k, whose overhead, about 50 us a
+    call, dominated the GPU's sweeps; a colour past the last one is an empty range). Same
+    numbers as solve_colour colour by colour. Compile time grows faster than k (CPU, particle
+    blocks: 4 s for k = 4, 13 s for 8, 48 s for 16)."""
+    for c in ti.static(range(k)):
+        for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
+                       cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
+            solve_item(p, wl, ct, bd, cs, s, blocks)
+
+
+@ti.func
+def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+               cs: ti.template(), s, blocks: ti.template()):
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = p.count[None]
-    for s in range(cs.start[c], cs.start[c + 1]):
-        q = cs.order[s]
-        da = 0.0
-        ra = 0.0
-        if q < nb:
-            if ti.static(blocks == 1):
-                da, ra = solve_particle_bonds(p, wl, bd, q, 1)
-            else:
-                da, ra = solve_bond(p, wl, bd, q)
+    q = cs.order[s]
+    da = 0.0
+    ra = 0.0
+    if q < nb:
+        if ti.static(blocks == 1):
+            da, ra = solve_particle_bonds(p, wl, bd, q, 1)
         else:
-            da, ra = solve_contact(p, wl, ct, q - nb, p.count[None], 1)
-        cs.change[q] = ti.Vector([da, ra])
+            da, ra = solve_bond(p, wl, bd, q)
+    else:
+        da, ra = solve_contact(p, wl, ct, q - nb, p.count[None], 1)
+    cs.change[q] = ti.Vector([da, ra])
 
 
 @ti.kernel
@@ -788,6 +809,7 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
 # is not a body), a bond's two particles, or a particle's bond block: the particle and all its
 # intact bonded neighbours (as block_mask).
 COLOUR_PASSES = 4
+COLOURS_PER_LAUNCH = 4      # colours unrolled into one solve_colours call
 
 
 @ti.func
