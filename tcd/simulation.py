@@ -440,8 +440,9 @@ class Simulation:
         ck.contact_geometry(p, wl, ct, h, theta, self.friction)
         if self.schedule == "coloured":
             ncol = self._colour()
-            for c in range(ncol):       # colour by colour: each colour's items share no body
-                sk.warm_start_colour(p, ct, bd, self.colours, c, self._blocks())
+            k = sk.COLOURS_PER_LAUNCH   # colour by colour: each colour's items share no body
+            for base in range(0, ncol, k):
+                sk.warm_start_colours(p, ct, bd, self.colours, base, self._blocks(), k)
         else:
             ncol = 0
             sk.apply_warm_start(p, ct, bd)
@@ -459,10 +460,11 @@ class Simulation:
         sk.integrate(p, h, theta)
         slop = s.overlap_slop * 2.0 * self.r_min
         if s.projection_passes > 0 and self.schedule == "coloured":
+            k = sk.COLOURS_PER_LAUNCH
             for _ in range(s.projection_passes):
-                for c in range(colours):
-                    sk.project_overlaps_colour(p, wl, ct, bd, self.colours, h, slop, c,
-                                               self._blocks())
+                for base in range(0, colours, k):
+                    sk.project_overlaps_colours(p, wl, ct, bd, self.colours, h, slop, base,
+                                                self._blocks(), k)
         elif s.projection_passes > 0:
             sk.project_overlaps(p, wl, ct, h, slop, s.projection_passes)
         sk.wall_forces(p, wl, ct, h)
@@ -509,14 +511,12 @@ class Simulation:
         if rounds:
             sk.colour_rounds_init(self.n, ct, bd, cs, blocks)
             active = int(cs.active[None])
-            ncol, it = 0, 0
+            ncol = 0
             while int(cs.coloured[None]) < active:
                 if ncol == sk.MAX_COLOURS:
                     self.stats.colour_overflow[None] = 1
                     break
-                for _ in range(sk.COLOUR_PASSES):
-                    sk.colour_rounds_pass(self.n, ct, bd, cs, ncol, it, blocks)
-                    it += 1
+                sk.colour_round(self.n, ct, bd, cs, ncol, ncol * sk.COLOUR_PASSES, blocks)
                 ncol += 1
             else:
                 sk.colour_rounds_order(self.n, ct, bd, cs, self.stats, ncol, blocks)

@@ -882,43 +882,68 @@ def colour_rounds_init(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.t
 
 
 @ti.kernel
-def colour_rounds_pass(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
-                       r: ti.i32, it: ti.i32, blocks: ti.template()):
-    """One pass of round r: bids, then takes."""
+def colour_round(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                 r: ti.i32, it: ti.i32, blocks: ti.template()):
+    """The COLOUR_PASSES passes of round r (pass numbers it, it + 1, ...), each its bids then
+    its takes, in one kernel call."""
+    for t in ti.static(range(COLOUR_PASSES)):
+        for q in range(item_total(n, ct, bd, blocks)):
+            colour_bid(n, ct, bd, cs, q, r, it + t, blocks)
+        for q in range(item_total(n, ct, bd, blocks)):
+            colour_take(n, ct, bd, cs, q, r, it + t, blocks)
+
+
+@ti.func
+def item_total(n, ct: ti.template(), bd: ti.template(), blocks: ti.template()):
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = n
-    for q in range(nb + ct.total[None]):
-        if cs.item_colour[q] == -2:
-            free = 1
-            m = item_body_count(ct, bd, q, nb, blocks)
-            for k in range(m):
-                b = item_body(ct, bd, q, nb, n, k, blocks)
-                if b >= 0 and cs.claim[b] == r:
-                    free = 0
-            if free == 1:
-                key = colour_key(it, q)
-                for k in range(m):
-                    b = item_body(ct, bd, q, nb, n, k, blocks)
-                    if b >= 0:
-                        ti.atomic_max(cs.best[b], key)
-    for q in range(nb + ct.total[None]):
-        if cs.item_colour[q] == -2:
+    return nb + ct.total[None]
+
+
+@ti.func
+def colour_bid(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r, it,
+               blocks: ti.template()):
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
+    if cs.item_colour[q] == -2:
+        free = 1
+        m = item_body_count(ct, bd, q, nb, blocks)
+        for k in range(m):
+            b = item_body(ct, bd, q, nb, n, k, blocks)
+            if b >= 0 and cs.claim[b] == r:
+                free = 0
+        if free == 1:
             key = colour_key(it, q)
-            win = 1
-            m = item_body_count(ct, bd, q, nb, blocks)
             for k in range(m):
                 b = item_body(ct, bd, q, nb, n, k, blocks)
-                if b >= 0 and (cs.best[b] != key or cs.claim[b] == r):
-                    win = 0
-            if win == 1:
-                cs.item_colour[q] = r
-                for k in range(m):
-                    b = item_body(ct, bd, q, nb, n, k, blocks)
-                    if b >= 0:
-                        cs.claim[b] = r
-                cs.start[r + 1] += 1
-                cs.coloured[None] += 1
+                if b >= 0:
+                    ti.atomic_max(cs.best[b], key)
+
+
+@ti.func
+def colour_take(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r, it,
+                blocks: ti.template()):
+    nb = bd.total[None]
+    if ti.static(blocks == 1):
+        nb = n
+    if cs.item_colour[q] == -2:
+        key = colour_key(it, q)
+        win = 1
+        m = item_body_count(ct, bd, q, nb, blocks)
+        for k in range(m):
+            b = item_body(ct, bd, q, nb, n, k, blocks)
+            if b >= 0 and (cs.best[b] != key or cs.claim[b] == r):
+                win = 0
+        if win == 1:
+            cs.item_colour[q] = r
+            for k in range(m):
+                b = item_body(ct, bd, q, nb, n, k, blocks)
+                if b >= 0:
+                    cs.claim[b] = r
+            cs.start[r + 1] += 1
+            cs.coloured[None] += 1
 
 
 @ti.kernel
@@ -943,26 +968,34 @@ def colour_rounds_order(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.
 
 
 @ti.kernel
-def warm_start_colour(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: ti.template(),
-                      c: ti.i32, blocks: ti.template()):
-    """The previous step's impulses of colour c's items applied to their bodies (in parallel:
-    they share no body). A bond block applies the bonds whose first end is its particle, so
-    each bond once."""
+def warm_start_colours(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                       base: ti.i32, blocks: ti.template(), k: ti.template()):
+    """The previous step's impulses of colours base .. base + k - 1 applied to their bodies,
+    colour after colour (within a colour in parallel: its items share no body). A bond block
+    applies the bonds whose first end is its particle, so each bond once."""
+    for c in ti.static(range(k)):
+        for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
+                       cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
+            warm_start_item(p, ct, bd, cs, s, blocks)
+
+
+@ti.func
+def warm_start_item(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: ti.template(),
+                    s, blocks: ti.template()):
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = p.count[None]
-    for s in range(cs.start[c], cs.start[c + 1]):
-        q = cs.order[s]
-        if q < nb:
-            if ti.static(blocks == 1):
-                for e in range(bd.start[q], bd.start[q + 1]):
-                    if bd.state[e] == INTACT:
-                        apply_impulse(p, bd.i[e], bd.j[e], bd.normal[e], bd.impulse[e])
-            else:
-                apply_impulse(p, bd.i[q], bd.j[q], bd.normal[q], bd.impulse[q])
+    q = cs.order[s]
+    if q < nb:
+        if ti.static(blocks == 1):
+            for e in range(bd.start[q], bd.start[q + 1]):
+                if bd.state[e] == INTACT:
+                    apply_impulse(p, bd.i[e], bd.j[e], bd.normal[e], bd.impulse[e])
         else:
-            k = q - nb
-            apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
+            apply_impulse(p, bd.i[q], bd.j[q], bd.normal[q], bd.impulse[q])
+    else:
+        k = q - nb
+        apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
 
 
 # --- bonds: per-step frame and compliance, and post-solve update with yield -------------------
@@ -1080,18 +1113,20 @@ def project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
 
 
 @ti.kernel
-def project_overlaps_colour(p: ti.template(), wl: ti.template(), ct: ti.template(),
-                            bd: ti.template(), cs: ti.template(), h: float, slop: float,
-                            c: ti.i32, blocks: ti.template()):
-    """project_overlaps for the contacts of colour c at once (they share no body): the
-    coloured schedule's projection, colour after colour, `passes` times."""
-    nb = bd.total[None]
-    if ti.static(blocks == 1):
-        nb = p.count[None]
-    for s in range(cs.start[c], cs.start[c + 1]):
-        q = cs.order[s]
-        if q >= nb:
-            project_contact(p, wl, ct, q - nb, p.count[None], h, slop)
+def project_overlaps_colours(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                             bd: ti.template(), cs: ti.template(), h: float, slop: float,
+                             base: ti.i32, blocks: ti.template(), k: ti.template()):
+    """project_overlaps for the contacts of colours base .. base + k - 1, colour after colour,
+    each colour's at once (they share no body): the coloured schedule's projection."""
+    for c in ti.static(range(k)):
+        for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
+                       cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
+            nb = bd.total[None]
+            if ti.static(blocks == 1):
+                nb = p.count[None]
+            q = cs.order[s]
+            if q >= nb:
+                project_contact(p, wl, ct, q - nb, p.count[None], h, slop)
 
 
 @ti.func
