@@ -154,6 +154,10 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
                              f"({path}); choose another prefix")
     states, h = load_states(path, frames)
     if time_step is not None:
+        if h is not None and not math.isclose(float(time_step), h, rel_tol=1e-12):
+            raise ValueError(f"--time-step {time_step:g}: {path} records its own time step, "
+                             f"{h:g} s, with which its impulses were computed; leave "
+                             "--time-step out")
         h = float(time_step)
     if not states:
         raise ValueError(f"{path}: no frames to analyse")

@@ -227,7 +227,7 @@ class PrepareStage(_Model):
     size_scale: float = Field(1.0, ge=1e-3, le=1e3)
     column_height_mm: float = Field(1600.0, gt=0)
     lattice_jitter_mm: float = Field(0.2, ge=0)
-    settle_speed: float = Field(0.005, gt=0)
+    settle_speed: float = Field(0.005, gt=0, le=1.0)   # m/s: "negligible" kinetic energy
     max_settle_time: float = Field(3.0, gt=0)
     vibration_amplitude_mm: float = Field(6.0, ge=0)
     vibration_frequency: float = Field(30.0, gt=0)
@@ -330,6 +330,13 @@ class PrepareStage(_Model):
             except ValueError as exc:
                 if "column diameter" in str(exc) or "too narrow" in str(exc):
                     key = "cylinder_diameter_mm"
+                if room > 0 and self.lattice_jitter > 0:
+                    try:                # fits without the jitter: the jitter is the problem
+                        packing.lattice_column(radii * self.size_scale, self.cylinder_diameter,
+                                               base, rng, max_height=room, jitter=0.0)
+                        key = "lattice_jitter_mm"
+                    except ValueError:
+                        pass
                 return [(key, f"course {k + 1} ({course}, {len(radii)} spheres) does not fit "
                               f"its pouring column: {exc}")]
         return []

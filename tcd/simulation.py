@@ -370,6 +370,7 @@ class Simulation:
             if not isinstance(w, Wall):
                 raise ValueError(f"wall {k} is a {type(w).__name__}, not a tcd.walls.Wall "
                                  "(make it with walls.plane / walls.cylinder, or Wall.from_dict)")
+            self._check_fits(k, w)
         self.walls = walls
         self._upload_walls(self.time)
         if hasattr(self, "contacts"):
@@ -626,8 +627,7 @@ class Simulation:
     def create_bonds(self, gap_tolerance: float) -> int:
         """Bond every particle pair whose gap is below `gap_tolerance` (m), stress-free, at the
         current time. Existing bonds are replaced. Walls are never bonded. Returns the count."""
-        if gap_tolerance < 0:
-            raise ValueError(f"bond gap tolerance must be >= 0, got {gap_tolerance}")
+        _finite("bond gap tolerance", gap_tolerance, low=0.0)
         x, r = self.positions(), self.radii()
         pairs = self._candidate_pairs(gap_tolerance)
         if len(pairs):
@@ -748,6 +748,11 @@ class Simulation:
         if not np.array_equal(system, get(p.system, n)):
             raise ValueError("state's particle systems differ from the simulation's "
                              "(build the simulation with system=...)")
+        radius = np.asarray(d["particles/radius"]).astype(backend.numpy_real())
+        if not np.array_equal(radius, get(p.radius, n)):
+            # the grid cell, alert distance and projection slop follow the radii
+            raise ValueError("state's particle radii differ from the simulation's (a state of "
+                             "another sample): build the Simulation with the state's radii")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
         self._neighbours_valid = False
@@ -952,8 +957,22 @@ class Simulation:
             raise ValueError(f"no wall {k}: the simulation has {len(self.walls)} walls")
         if not isinstance(wall, Wall):
             raise ValueError(f"wall {k}: a {type(wall).__name__}, not a tcd.walls.Wall")
+        self._check_fits(k, wall)
         self.walls[k] = wall
         self._upload_walls(self.time)
+
+    def _check_fits(self, k: int, w: Wall) -> None:
+        """A cylinder (its inner surface holds the spheres) must be wider than the largest
+        sphere of its system, or no sphere fits inside it."""
+        if w.kind != "cylinder" or self.n == 0:
+            return
+        r = get(self.particles.radius, self.n)
+        if 0 <= w.system < self.systems:
+            r = r[self.system_start[w.system]:self.system_start[w.system + 1]]
+        if len(r) and float(r.max()) >= w.radius:
+            raise ValueError(f"wall {k} ({w.name or 'cylinder'}): its radius {w.radius:g} m is not "
+                             f"larger than the largest sphere radius {float(r.max()):g} m: no "
+                             "sphere fits inside it")
 
 
 class SystemView:

@@ -167,3 +167,14 @@ def test_the_shipped_sample_at_rest_obeys_the_virial_theorem():
     x, r = f["particles/x"], f["particles/radius"]
     z_g = float(np.sum(r**3 * x[:, 2]) / np.sum(r**3))
     assert s[2, 2] == pytest.approx(-2600.0 * 9.81 * z_g, rel=1e-3)
+
+
+def test_a_time_step_that_contradicts_the_file_is_refused(tmp_path):
+    """A states file records the step its impulses were computed with: another --time-step
+    would scale every force wrongly; the same one is accepted."""
+    f, _ = column()
+    path = tmp_path / "states.h5"
+    io.append_frame(path, f, time=0.1, step=5, stage="prepare", scenario_text=SCENARIO)
+    with pytest.raises(ValueError, match="records its own time step"):
+        analysis.analyse(path, tmp_path / "a", time_step=2 * H)
+    analysis.analyse(path, tmp_path / "b", time_step=H)

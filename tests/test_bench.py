@@ -42,3 +42,10 @@ def test_scaling_checks_its_arguments_before_the_first_size(tmp_path, monkeypatc
     with pytest.raises(ValueError, match=message):
         bench.scaling(**kwargs)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_benchmark_shorter_than_two_steps_is_refused():
+    """The first step compiles and is not timed: --time below two steps used to run two steps
+    silently."""
+    with pytest.raises(ValueError, match="less than two time steps"):
+        bench.pour(particles=10, time=1e-5)

@@ -449,3 +449,17 @@ def test_unknown_colouring_is_refused():
     text = FULL.replace('colouring = "rounds"', 'colouring = "random"')
     with pytest.raises(ScenarioError, match="colouring"):
         parse_scenario(text)
+
+
+def test_a_jitter_too_wide_for_the_column_is_named(tmp_path):
+    # 30 mm of jitter each side makes the lattice spacing 76 mm: one site would not fit the
+    # 150 mm column; without the jitter it fits, so the jitter is the key to blame
+    err = refusal(tmp_path, MINIMAL.replace(
+        'kind = "prepare"', 'kind = "prepare"\nlattice_jitter_mm = 40'))
+    assert_names(err, "stage[1].lattice_jitter_mm", "does not fit")
+
+
+def test_settle_speed_must_mean_negligible_motion(tmp_path):
+    err = refusal(tmp_path, MINIMAL.replace(
+        'kind = "prepare"', 'kind = "prepare"\nsettle_speed = 1e9'))
+    assert_names(err, "stage[1].settle_speed")

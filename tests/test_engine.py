@@ -449,3 +449,28 @@ def test_setters_and_walls_refuse_non_finite_or_misshapen_values():
     sim.step(3)                                  # the refusals left the simulation usable
     assert np.all(np.isfinite(sim.positions()))
     sim.close()
+
+
+def test_api_refuses_impossible_inputs_with_a_named_reason():
+    """Non-finite bond gap tolerance, a cylinder narrower than the largest sphere (at
+    construction, set_walls and replace_wall), a state of another sample's radii."""
+    r = [0.004, 0.006]
+    x = [[0, 0, 0.01], [0, 0, 0.03]]
+    dom = ((-0.02, -0.02, 0), (0.02, 0.02, 0.05))
+    sim = Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))], domain=dom)
+    for bad in (float("nan"), float("inf"), -1e-3):
+        with pytest.raises(ValueError, match="bond gap tolerance"):
+            sim.create_bonds(bad)
+    narrow = walls.cylinder((0, 0, 0), (0, 0, 1), 0.005, (0, 0.05), name="mould")
+    with pytest.raises(ValueError, match="mould.*no sphere fits"):
+        sim.set_walls([narrow])
+    with pytest.raises(ValueError, match="no sphere fits"):
+        sim.replace_wall(0, narrow)
+    with pytest.raises(ValueError, match="no sphere fits"):
+        Simulation(r, x, walls=[narrow], domain=dom)
+    sim.set_walls([walls.cylinder((0, 0, 0), (0, 0, 1), 0.0061, (0, 0.05))])  # fits: accepted
+    state = sim.state_dict()
+    state["particles/radius"] = np.array([0.004, 0.005])
+    with pytest.raises(ValueError, match="radii differ"):
+        sim.load_state_dict(state)
+    sim.close()
