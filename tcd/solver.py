@@ -894,19 +894,23 @@ def colour_round(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templat
 
 
 @ti.func
-def item_total(n, ct: ti.template(), bd: ti.template(), blocks: ti.template()):
+def bond_items(n, bd: ti.template(), blocks: ti.template()):
+    """Items before the contacts: the bonds, or with blocks the n particle blocks."""
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = n
-    return nb + ct.total[None]
+    return nb
+
+
+@ti.func
+def item_total(n, ct: ti.template(), bd: ti.template(), blocks: ti.template()):
+    return bond_items(n, bd, blocks) + ct.total[None]
 
 
 @ti.func
 def colour_bid(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r, it,
                blocks: ti.template()):
-    nb = bd.total[None]
-    if ti.static(blocks == 1):
-        nb = n
+    nb = bond_items(n, bd, blocks)
     if cs.item_colour[q] == -2:
         free = 1
         m = item_body_count(ct, bd, q, nb, blocks)
@@ -925,9 +929,7 @@ def colour_bid(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r,
 @ti.func
 def colour_take(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r, it,
                 blocks: ti.template()):
-    nb = bd.total[None]
-    if ti.static(blocks == 1):
-        nb = n
+    nb = bond_items(n, bd, blocks)
     if cs.item_colour[q] == -2:
         key = colour_key(it, q)
         win = 1
