@@ -1,6 +1,7 @@
 #!/bin/bash
 # GPU checks and figures, run on a lent GPU machine (the device tool) from the repository root:
-#   bash benchmarks/gpu_check.sh quick|full
+#   bash benchmarks/gpu_check.sh tests|bench   (also: quick, diag, check, final, full: session 15's calls)
+# with DEADLINE=S (seconds) to end the later stages in time
 # Logs go to $OUT (default /tmp/tcd_gpu). Where the machine has no taichi, wheels carried in
 # .whl/ (Python 3.12, see docs/measurements.md) are installed to /tmp/site first.
 set -u
@@ -28,7 +29,7 @@ stage() {   # stage NAME LIMIT_S command...: output in $O/NAME.txt, its tail and
 }
 S='samples/leutner_seed{seed}_prepared.h5'
 case "${1:-quick}" in
-final)
+final)      # session 15's last call (390 s): tests cut at 130 s, pour and batch cut
     stage pytest_gpu 130 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
         --timeout 100 --durations 12 -rfE -v tests/test_engine.py tests/test_bonds.py tests/test_batch.py
     # a failure of the parallel colouring (new, checked on the CPU only) falls back to greedy
@@ -37,6 +38,16 @@ final)
     stage shear_batch5 70 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.01 --arch gpu --json
     stage pour_2600 170 python3 -m tcd bench pour --particles 2600 --time 1.0 --arch gpu --json
     stage scaling_1e6 120 python3 -m tcd bench scaling --sizes 1000000 --steps 20 --arch gpu --out "$O/scaling_gpu" --json
+    ;;
+tests)      # next session, first call (about 4 min with the start): every test line logged
+    stage pytest_gpu 200 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \
+        --timeout 150 --durations 20 -rfE -v tests/test_engine.py tests/test_bonds.py tests/test_batch.py
+    ;;
+bench)      # next session, second call (up to 9.5 min): the figures issues 2 and 8 ask for
+    stage shear_5200 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
+    stage shear_batch5 100 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json
+    stage pour_2600 240 python3 -m tcd bench pour --particles 2600 --time 1.0 --arch gpu --json
+    stage scaling_1e6 150 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --arch gpu --out "$O/scaling_gpu" --json
     ;;
 check)
     TAIL=4 stage diag_trace 40 env TCD_SYNC_TRACE=1 python3 benchmarks/gpu_diag.py gpu f64
