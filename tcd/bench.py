@@ -106,8 +106,12 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     return out
 
 
-def _check_steps(time: float, time_step: float = 2e-4) -> None:
-    """The first step compiles and is not timed: a benchmark needs two steps at least."""
+def _check_steps(time: float, time_step: float | None = None) -> None:
+    """The first step compiles and is not timed: a benchmark needs two steps at least
+    (`time_step`: the simulation's, by default the solver's default)."""
+    if time_step is None:
+        from .simulation import SolverSettings
+        time_step = SolverSettings.time_step
     if not time >= 2 * time_step:
         raise ValueError(f"time {time:g} s is less than two time steps (2 x {time_step:g} s): "
                          "the first step compiles and is not timed")

@@ -26,16 +26,6 @@ from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contact
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
-
-
-def _auto_arch() -> str:
-    """The backend whose defaults "auto" settings follow: the one running, unless the
-    environment variable TCD_AUTO=gpu asks for the GPU's choices (coloured schedule, colouring
-    by rounds) on the CPU, to run the GPU's algorithms where no GPU is (tests: --auto gpu)."""
-    auto = os.environ.get("TCD_AUTO", "")
-    if auto not in ("", "cpu", "gpu"):
-        raise ValueError(f"TCD_AUTO={auto!r}: expected 'cpu' or 'gpu'")
-    return auto or backend.arch()
 ACCELERATIONS = ("nncg", "none")
 COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
@@ -43,6 +33,16 @@ INT32_MAX = 2**31 - 1
 STATE_KEYS = tuple("particles/" + k for k in ("x", "v", "w", "radius", "layer", "inv_mass",
                                                "inv_inertia", "f_ext")) + tuple(
     "contacts/" + k for k in ("i", "j", "impulse", "gap", "start")) + ("bonds/state",)
+
+
+def _auto_arch() -> str:
+    """The backend whose defaults "auto" settings follow: the one running, unless the
+    environment variable TCD_AUTO=gpu asks for the GPU's choices (coloured schedule, colouring
+    by rounds) on the CPU, to run the GPU's algorithms where no GPU is."""
+    auto = os.environ.get("TCD_AUTO", "")
+    if auto not in ("", "cpu", "gpu"):
+        raise ValueError(f"TCD_AUTO={auto!r}: expected 'cpu' or 'gpu'")
+    return auto or backend.arch()
 
 
 def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.ndarray:
@@ -101,7 +101,7 @@ class SolverSettings:
     particle may have moved more than its margin, half the skin or three steps of its reach
     for a fast grain; the contacts are the same for any skin, only the cost changes);
     colouring (coloured schedule): "greedy" (one thread, canonical order: fewest colours),
-    "rounds" (in parallel, solver.colour_rounds_*: a few more colours, no serial pass) or
+    "rounds" (in parallel, solver.colour_round: a few more colours, no serial pass) or
     "auto" (greedy on the CPU, rounds on the GPU)."""
     time_step: float = 2e-4
     theta: float = 1.0
@@ -440,12 +440,10 @@ class Simulation:
                 sk.bonds_factor(p, bd)
         ck.contact_geometry(p, wl, ct, h, theta, self.friction)
         if self.schedule == "coloured":
-            ncol = self._colour()
-            k = sk.COLOURS_PER_LAUNCH   # colour by colour: each colour's items share no body
-            for base in range(0, ncol, k):
-                sk.warm_start_colours(p, ct, bd, self.colours, base, self._blocks(), k)
+            ncol, items = self._colour()
+            self._by_colours(ncol, sk.warm_start_colours, p, ct, bd, self.colours)
         else:
-            ncol = 0
+            ncol, items = 0, 0
             sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
@@ -455,17 +453,15 @@ class Simulation:
             self._solve_partitioned()
             colours = 0
         else:
-            colours = self._solve_coloured(ncol)
+            colours = self._solve_coloured(ncol, items)
         if bd.total[None] > 0:
             sk.bonds_finish(p, wl, bd, h, theta, t_end, *law_args, law.yield_stress)
         sk.integrate(p, h, theta)
         slop = s.overlap_slop * 2.0 * self.r_min
         if s.projection_passes > 0 and self.schedule == "coloured":
-            k = sk.COLOURS_PER_LAUNCH
             for _ in range(s.projection_passes):
-                for base in range(0, colours, k):
-                    sk.project_overlaps_colours(p, wl, ct, bd, self.colours, h, slop, base,
-                                                self._blocks(), k)
+                self._by_colours(colours, sk.project_overlaps_colours, p, wl, ct, bd,
+                                 self.colours, h, slop)
         elif s.projection_passes > 0:
             sk.project_overlaps(p, wl, ct, h, slop, s.projection_passes)
         sk.wall_forces(p, wl, ct, h)
@@ -496,9 +492,16 @@ class Simulation:
     def _blocks(self) -> int:
         return 1 if self.settings.bond_blocks else 0
 
-    def _colour(self) -> int:
+    def _by_colours(self, ncol: int, kernel, *args) -> None:
+        """kernel(*args, base, blocks, k) for the colours 0 .. ncol - 1, k = COLOURS_PER_LAUNCH
+        colours per call, colour after colour (the *_colours kernels of tcd/solver.py)."""
+        k = sk.COLOURS_PER_LAUNCH
+        for base in range(0, ncol, k):
+            kernel(*args, base, self._blocks(), k)
+
+    def _colour(self) -> tuple:
         """Colour this step's bond items and contacts (greedy or by rounds, see
-        SolverSettings.colouring); the number of colours."""
+        SolverSettings.colouring); (number of colours, number of items)."""
         s = self.settings
         p, ct, bd = self.particles, self.contacts, self.bonds
         blocks = self._blocks()
@@ -526,19 +529,15 @@ class Simulation:
         if self.stats.colour_overflow[None]:
             raise CapacityError("contact colouring needs more than "
                                 f"{sk.MAX_COLOURS} colours (a body with that many contacts)")
-        self._colour_items = nb + int(ct.total[None])
-        return int(self.stats.colours[None])
+        return int(self.stats.colours[None]), nb + int(ct.total[None])
 
-    def _solve_coloured(self, ncol: int) -> int:
+    def _solve_coloured(self, ncol: int, items: int) -> int:
         s = self.settings
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
-        blocks = self._blocks()
         cs = self.colours
-        items = self._colour_items
         sweeps, residual = 0, 0.0
         while True:
-            for base in range(0, ncol, sk.COLOURS_PER_LAUNCH):
-                sk.solve_colours(p, wl, ct, bd, cs, base, blocks, sk.COLOURS_PER_LAUNCH)
+            self._by_colours(ncol, sk.solve_colours, p, wl, ct, bd, cs)
             sweeps += 1
             if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
                 residual = sk.sweep_residual(cs, items)

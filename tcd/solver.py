@@ -733,17 +733,10 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
 
 
 @ti.kernel
-def solve_colour(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-                 cs: ti.template(), c: ti.i32, blocks: ti.template()):
-    """The items of colour c at once (they share no dynamic body)."""
-    for s in range(cs.start[c], cs.start[c + 1]):
-        solve_item(p, wl, ct, bd, cs, s, blocks)
-
-
-@ti.kernel
 def solve_colours(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                   cs: ti.template(), base: ti.i32, blocks: ti.template(), k: ti.template()):
-    """Colours base .. base + k - 1 one after the other, as solve_colour, in ONE kernel call
+    """Colours base .. base + k - 1 one after the other, each colour's items at once (they
+    share no dynamic body), in ONE kernel call
     (k parallel loops unrolled: one Python launch instead of k, whose overhead, about 50 us a
     call, dominated the GPU's sweeps; a colour past the last one is an empty range). Same
     numbers as solve_colour colour by colour. Compile time grows faster than k (CPU, particle

@@ -331,7 +331,7 @@ class ColourSet:
         self.item_colour, self.order = _int(capacity), _int(capacity)
         self.start, self.cursor = _int(MAX_COLOURS + 1), _int(MAX_COLOURS)
         self.change = ti.Vector.field(2, backend.real(), shape=capacity)
-        # parallel colouring by rounds (solver.colour_rounds_*): per body, the round that
+        # parallel colouring by rounds (solver.colour_round*): per body, the round that
         # claimed it and the best bid of the current pass; coloured/active item counts
         self.claim = _int(particle_capacity)
         self.best = _int(particle_capacity, ti.i64)
