@@ -150,7 +150,10 @@ def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule():
     schedule (particle bond blocks split between the ranges and the boundary, NNCG) reaches
     the serial schedule's velocities and bond impulses. The two converge to each other with the
     tolerance (measured after 3 steps, largest difference over the largest value: velocities
-    2.5e-5 / 5.3e-6 / 5.1e-7 and bond impulses 8.2e-4 / 1.4e-4 / 1.4e-5 at 1e-7 / 1e-8 / 1e-9)."""
+    2.5e-5 / 5.3e-6 / 5.1e-7 and bond impulses 8.2e-4 / 1.4e-4 / 1.4e-5 at 1e-7 / 1e-8 / 1e-9;
+    session 16, at 1e-7: 3.8e-5 and 8.7e-4). Run at 1e-7: 1e-8 took 85,000 sweeps per step,
+    26 s of the suite; 1e-7 takes 7 s. The bounds are 3 to 5 times the measured differences,
+    far below what a wrong visiting order or a lost update gives (order 1)."""
     base, _ = pour(n=60, steps=2500, seed=5, diameter=0.025, max_sweeps=400)
     state, r = base.state_dict(), base.radii()
     base.close()
@@ -161,25 +164,25 @@ def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule():
               walls.cylinder((0, 0, 0), (0, 0, 1), 0.0125, (0, 1), motion="constant",
                              velocity=(0.01, 0, 0))]
         sim = Simulation(r, state["particles/x"], walls=wl,
-                         settings=SolverSettings(tolerance=1e-8, max_sweeps=200000,
+                         settings=SolverSettings(tolerance=1e-7, max_sweeps=200000,
                                                  schedule=schedule, threads=2),
                          domain=((-0.05, -0.05, 0), (0.05, 0.05, 0.2)))
         sim.load_state_dict({**state, "walls/force": np.zeros((2, 3))})
         assert sim.create_bonds(gap_tolerance=5e-4) > 100
         for _ in range(3):
             rec = sim.step()
-            assert rec.residual <= 1e-8 and rec.bonds_intact > 100
+            assert rec.residual <= 1e-7 and rec.bonds_intact > 100
         results.append((sim.velocities(), sim.state_dict()["bonds/impulse"]))
         sim.close()
     (v_s, b_s), (v_p, b_p) = results
     assert np.abs(v_s).max() > 0.001 and np.abs(b_s).max() > 0
-    assert np.abs(v_p - v_s).max() <= 1e-4 * np.abs(v_s).max()
-    assert np.abs(b_p - b_s).max() <= 1e-3 * np.abs(b_s).max()
+    assert np.abs(v_p - v_s).max() <= 2e-4 * np.abs(v_s).max()
+    assert np.abs(b_p - b_s).max() <= 3e-3 * np.abs(b_s).max()
 
 
 def test_a_batch_refuses_the_partitioned_schedule():
-    a, _ = pour(n=20, steps=2, schedule="partitioned")
-    b, _ = pour(n=20, steps=2, seed=4, schedule="partitioned")
+    a, _ = pour(n=20, steps=0, schedule="partitioned")
+    b, _ = pour(n=20, steps=0, seed=4, schedule="partitioned")
     with pytest.raises(ValueError, match="partitioned schedule splits ONE system"):
         Simulation.batch([a, b])
 
