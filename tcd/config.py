@@ -457,6 +457,11 @@ class Scenario(_Model):
                 prepared = stage
                 continue
             key = f"stage[{k + 1}]"
+            if stage.duration < self.solver.time_step:
+                problems.append((f"{key}.velocity_mm_per_min",
+                                 f"{stage.velocity_mm_per_min:g} mm/min covers displacement_mm "
+                                 f"({stage.displacement_mm:g} mm) in {stage.duration:.3g} s, less "
+                                 f"than one time step ({self.solver.time_step:g} s)"))
             if stage.sample:
                 if prepared is not None:
                     problems.append((f"{key}.sample",
@@ -467,6 +472,12 @@ class Scenario(_Model):
             if prepared is None:
                 problems.append((f"{key}.sample", "a shear stage needs a preceding prepare "
                                                   "stage or a sample path"))
+            elif stage.displacement_mm >= prepared.cylinder_diameter_mm:
+                problems.append((f"{key}.displacement_mm",
+                                 f"{stage.displacement_mm:g} mm is not smaller than the "
+                                 f"{prepared.cylinder_diameter_mm:g} mm diameter of the "
+                                 f"preceding prepare stage's mould: the upper ring would "
+                                 f"leave the lower one"))
             elif 2 * stage.ring_height_mm < prepared.sample_height_mm:
                 problems.append((f"{key}.ring_height_mm",
                                  f"two rings of {stage.ring_height_mm:g} mm cannot confine the "

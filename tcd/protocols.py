@@ -283,6 +283,10 @@ class Shear:
         c = self.cfg
         x, r = sim.positions(), sim.radii()
         R = float(np.max([w.radius for w in sim.walls if w.kind == "cylinder"]))
+        if self.displacement >= 2 * R:
+            raise ValueError(f"shear displacement_mm {c.displacement_mm:g} mm is not smaller "
+                             f"than the sample's {2e3 * R:g} mm diameter: the upper ring would "
+                             f"leave the lower one")
         plate = float(max(w.position(t)[2] for w in sim.walls if w.kind == "plane" and w.direction[2] < 0))
         # the sample is confined: the top plate rests on its highest grain (vibration may have
         # packed the grains below the mould's height; a gap would let the bonded sample jump)

@@ -307,6 +307,26 @@ def test_shear_gap_larger_than_ring_height(tmp_path):
     assert_names(err, "stage[2].gap_mm", "smaller than ring_height_mm")
 
 
+def test_shear_displacement_not_below_the_mould_diameter(tmp_path):
+    # at 150 mm the upper ring of a 150 mm mould no longer overlaps the lower one
+    err = refusal(tmp_path, MINIMAL + "displacement_mm = 150\n")
+    assert_names(err, "stage[2].displacement_mm", "150 mm diameter", "leave the lower one")
+    load_scenario(write(tmp_path, MINIMAL + "displacement_mm = 149\n", "ok.toml"))
+
+
+def test_shear_shorter_than_one_time_step(tmp_path):
+    # 0.2 mm at 10 m/s takes 2e-5 s: no step of 2e-4 s (it used to end in a KeyError)
+    err = refusal(tmp_path, MINIMAL + "displacement_mm = 0.2\nvelocity_mm_per_min = 600000\n"
+                                      "smoothing_window_mm = 0.1\n")
+    assert_names(err, "stage[2].velocity_mm_per_min", "less than one time step")
+
+
+def test_rings_too_short_for_the_prepared_sample(tmp_path):
+    # the default sample is 120 mm high: two rings of 50 mm leave 20 mm unconfined
+    err = refusal(tmp_path, MINIMAL + "ring_height_mm = 50\n")
+    assert_names(err, "stage[2].ring_height_mm", "two rings of 50 mm", "120 mm sample")
+
+
 def test_sample_shorter_than_its_layers(tmp_path):
     # two 60 mm courses cannot be confined to 100 mm (< 0.9 x 120 mm)
     err = refusal(tmp_path, MINIMAL.replace(
