@@ -216,7 +216,8 @@ class PrepareStage(_Model):
     has passed; the top plate then
     vibrates (`vibration_amplitude_mm`, `vibration_frequency`, `vibration_duration`) and holds
     the layer at its height until settled (at most `max_hold_time`). The plate is servo-
-    controlled: it never pushes with more than `plate_force_factor` times the sample's weight."""
+    controlled: it backs off while it pushes with more than `plate_force_factor` times the
+    sample's weight."""
     kind: Literal["prepare"]
     cylinder_diameter_mm: float = Field(150.0, gt=0)
     layer_height_mm: float = Field(60.0, gt=0)

@@ -15,12 +15,17 @@ import taichi as ti
 
 # --- frictional contact: Signorini + Coulomb (section 3) -------------------------------------
 @ti.func
-def signorini_coulomb(ufn, uft, rhs_n, wnn, wtt, mu):
-    """Exact local solution given the free velocity (ufn, uft) and gap term rhs_n = g/(theta H).
+def signorini_coulomb(ufn, uft, rhs_n, inv_wnn, inv_wtt, mu):
+    """Exact local solution given the free velocity (ufn, uft) and gap term rhs_n = g/(theta H),
+    the Delassus diagonal given by its inverses 1/W_nn, 1/W_tt.
 
-    Returns (R_n, R_T) with R_T a vector in the tangent plane."""
-    rn = ti.max(0.0, -(ufn + rhs_n) / wnn)
-    rt = -uft / wtt
+    Returns (R_n, R_T) with R_T a vector in the tangent plane. The inverses come from the
+    contact's record, off the chain of body velocities that one Gauss-Seidel visit waits on
+    from the one before; multiplying by them instead of dividing shortens that chain (measured,
+    session 16, impact step of benchmarks/solver_convergence.py: 36.6 -> 33.2 ns per contact
+    update with NNCG, 28.6 -> 26.3 plain; the same residuals to three digits)."""
+    rn = ti.max(0.0, -(ufn + rhs_n) * inv_wnn)
+    rt = -uft * inv_wtt
     # squared comparison: the square root is only paid when the contact slides
     nt2 = rt.norm_sqr()
     limit = mu * rn
@@ -32,9 +37,9 @@ def signorini_coulomb(ufn, uft, rhs_n, wnn, wtt, mu):
     return rn, rt
 
 
-def signorini_coulomb_np(ufn, uft, rhs_n, wnn, wtt, mu):
-    rn = max(0.0, -(ufn + rhs_n) / wnn)
-    rt = -np.asarray(uft, dtype=float) / wtt
+def signorini_coulomb_np(ufn, uft, rhs_n, inv_wnn, inv_wtt, mu):
+    rn = max(0.0, -(ufn + rhs_n) * inv_wnn)
+    rt = -np.asarray(uft, dtype=float) * inv_wtt
     nt = float(np.linalg.norm(rt))
     if nt > mu * rn:
         rt = rt * (mu * rn / nt if nt > 0 else 0.0)

@@ -105,7 +105,7 @@ def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, 
         rn_old = r_old.dot(n)
         ufn = un - wnn * rn_old
         uft = (u - un * n) - wtt * (r_old - rn_old * n)
-        rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], wnn, wtt, ct.mu[k])
+        rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], 1.0 / wnn, 1.0 / wtt, ct.mu[k])
         r_new = rn * n + rt
         dr = r_new - r_old
         c = n.cross(dr)

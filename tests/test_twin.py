@@ -84,10 +84,15 @@ def test_twin_shear_is_quasi_static(twin):
 
 
 def test_twin_bonds_break_most_near_the_plane(twin):
-    """Broken bonds are commoner near the shear plane (within a quarter ring height) than far
-    from it (beyond half a ring height). The twin's bonds are brittle (their yield displacement
-    scales with the square of the sizes), so its failure is diffuse: most of its bonds break."""
+    """By the peak, broken bonds are commoner near the shear plane (within a quarter ring
+    height) than far from it (beyond half a ring height). The twin's bonds are brittle (their
+    yield displacement scales with the square of the sizes), so its failure is diffuse: after
+    the peak nearly all of them break (at 2.5 mm, seeds 1-5: 0.99-1.00 near, 0.88-0.94 far),
+    and only the bonds broken by the peak tell where failure formed (seeds 1-5, session 16:
+    0.97 / 0.97 / 0.97 / 0.77 / 0.93 near against 0.79 / 0.82 / 0.76 / 0.44 / 0.64 far)."""
     out, _, shear = twin
+    series = io.read_series(out / "sample_1" / "shear_series.h5")
+    t_peak = np.asarray(series["time"])[shear["peak_index"]]
     f = io.read_frame(out / "sample_1" / "states.h5", -1)
     state, i, j = f["bonds/state"], f["bonds/i"], f["bonds/j"]
     x = f["particles/x"]
@@ -98,7 +103,8 @@ def test_twin_bonds_break_most_near_the_plane(twin):
     broken = state != 0
     assert shear["bonds_broken"] == broken.sum() > 0.05 * len(state)
     assert near.sum() > 20 and far.sum() > 20
-    assert broken[near].mean() > broken[far].mean() + 0.1
+    by_peak = broken & (f["bonds/broken_time"] <= t_peak)
+    assert by_peak[near].mean() > by_peak[far].mean() + 0.1
 
 
 def test_twin_stress_rises_then_falls(twin):
