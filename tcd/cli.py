@@ -288,13 +288,16 @@ def _run_bench(args) -> dict:
                   file=sys.stderr, flush=True)
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
                      tolerance=args.tolerance, out=args.out, progress=done,
-                     schedule=args.schedule, threads=args.threads, colouring=args.colouring)
+                     schedule=args.schedule, threads=args.threads, colouring=args.colouring,
+                     settle=args.settle)
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
                        threads=args.threads, colouring=args.colouring)
         if getattr(args, "samples", 1) > 1:
             options["samples"] = args.samples
+        if getattr(args, "bond_solve", "blocks") != "blocks":
+            options["bond_blocks"] = False
         if getattr(args, "sample", None):
             for k in range(getattr(args, "samples", 1)):
                 try:
@@ -470,10 +473,15 @@ def build_parser() -> argparse.ArgumentParser:
                                 "one; {seed} in the name is replaced by the seed")
             b.add_argument("--samples", type=_positive_int, default=1, metavar="K",
                            help="shear K samples (seeds SEED..SEED+K-1) as one batched simulation")
+            b.add_argument("--bond-solve", choices=("blocks", "pairs"), default="blocks",
+                           help="bond items of the Gauss-Seidel: each particle's bonds solved "
+                                "together (blocks, the default) or bond by bond (pairs)")
         b.set_defaults(handler=cmd_bench)
     b = bench_sub.add_parser("scaling", help="cost per particle step against particle count")
     b.add_argument("--sizes", default="1000,3000,10000,30000,100000", metavar="N,N,...")
     b.add_argument("--steps", type=_positive_int, default=200)
+    b.add_argument("--settle", type=float, default=0.3, metavar="T",
+                   help="simulated seconds poured before each size's timed steps (default 0.3)")
     _backend_options(b, default_arch="cpu", default_precision="f64")
     b.add_argument("--tolerance", type=_positive_float, default=1e-4)
     _schedule_options(b)

@@ -35,6 +35,8 @@ def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatc
     ({"sizes": (100,)}, "at least 300 spheres"),
     ({"steps": 1}, "steps 1: at least 2"),                   # divided by steps - 1 at the end
     ({"out": "/proc/no/such/scaling"}, "cannot write into /proc/no/such"),
+    ({"settle": -0.1}, "settle -0.1: expected a finite time >= 0"),
+    ({"settle": float("nan")}, "settle nan"),
 ])
 def test_scaling_checks_its_arguments_before_the_first_size(tmp_path, monkeypatch, options, message):
     monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: pytest.fail("a size was run"))
@@ -49,3 +51,10 @@ def test_a_benchmark_shorter_than_two_steps_is_refused():
     silently."""
     with pytest.raises(ValueError, match="less than two time steps"):
         bench.pour(particles=10, time=1e-5)
+
+
+def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark():
+    """A million spheres do not fit a 150 mm mould under 100 m of lattice column: the refusal
+    names the benchmark that widens the cylinder with N (the GPU's 1e6 row)."""
+    with pytest.raises(ValueError, match=r"above max_height.*tcd bench scaling --sizes 1000000"):
+        bench.pour(particles=1_000_000, time=0.01)

@@ -217,7 +217,14 @@ def test_info_not_hdf5(tmp_path, capsys):
     (["scaling", "--sizes", "100,200", "--steps", "5", "--out", "x", "--schedule", "coloured",
       "--colouring", "rounds"],
      ("scaling", dict(sizes=[100, 200], steps=5, arch="cpu", precision="f64", tolerance=1e-4,
-                      out="x", schedule="coloured", threads=2, colouring="rounds"))),
+                      out="x", schedule="coloured", threads=2, colouring="rounds", settle=0.3))),
+    (["scaling", "--sizes", "1000000", "--steps", "10", "--settle", "0.05"],
+     ("scaling", dict(sizes=[1000000], steps=10, arch="cpu", precision="f64", tolerance=1e-4,
+                      out="renders/scaling", schedule="auto", threads=2, colouring="auto",
+                      settle=0.05))),
+    (["shear", "--bond-solve", "pairs"],
+     ("shear", dict(particles=5200, arch="cpu", precision="f64", tolerance=1e-4, seed=1,
+                    schedule="auto", threads=2, colouring="auto", bond_blocks=False))),
 ])
 def test_bench_passes_keyword_options(argv, expected, stub, capsys):
     calls = []
