@@ -187,6 +187,17 @@ def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
     # the colour lists hold every active item exactly once
     order = cs.order.to_numpy()[: int(cs.start[sim.stats.colours[None]])]
     assert sorted(order.tolist()) == np.nonzero(active)[0].tolist()
+    if blocks and colouring == "rounds":
+        # the larger items bid first (on a GPU a colour is as slow as its largest item, and a
+        # block's thread solves all its bonds): each round's first pass gives its colour to the
+        # largest item left, so the largest item of each colour never grows from one colour to
+        # the next (hash keys alone gave 10, 10, 9, 8, 10, ... here). Size as the kernel counts
+        # it: a block is its particle and all its bonds, broken or not; a contact is 2
+        size = np.array([1 + np.count_nonzero(bi == q) + np.count_nonzero(bj == q)
+                         for q in range(sim.n)] + [2] * nc)
+        largest = [int(size[active & (col == c)].max()) for c in range(int(col.max()) + 1)]
+        assert largest == sorted(largest, reverse=True), largest
+        assert largest[0] == size[active].max() > largest[-1]
     sim.close()
 
 
