@@ -26,7 +26,7 @@ def _init(arch, precision):
 
 def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = CYLINDER_RADIUS,
                course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
-               threads: int = 2, colouring: str = "auto"):
+               threads: int = 2, colouring: str = "auto", check_every: int = 1):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -37,7 +37,7 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
     sim = Simulation(r, x, walls=wl, friction=0.7,
                      settings=SolverSettings(tolerance=tolerance, max_sweeps=max_sweeps,
                                              schedule=schedule, threads=threads,
-                                             colouring=colouring),
+                                             colouring=colouring, check_every=check_every),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -79,14 +79,14 @@ def _loop(sim, steps: int, per_system: bool = False):
 
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
          tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
-         colouring: str = "auto") -> dict:
+         colouring: str = "auto", check_every: int = 1) -> dict:
     """`schedule`, `threads`: the solver's (SolverSettings); `threads` only counts for the
     partitioned schedule."""
     _init(arch, precision)
     _check_steps(time)
     try:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
-                         colouring=colouring)
+                         colouring=colouring, check_every=check_every)
     except ValueError as exc:
         if "max_height" not in str(exc):
             raise
@@ -102,8 +102,8 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "mean_sweeps": float(sweeps.mean()) if len(sweeps) else 0.0,
         "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
         "final_residual": float(residuals[-1]) if len(residuals) else 0.0,
-        "tolerance": tolerance, "arch": arch, "precision": precision,
-        "schedule": sim.schedule, "colours": colours,
+        "tolerance": tolerance, "check_every": sim.settings.check_every, "arch": arch,
+        "precision": precision, "schedule": sim.schedule, "colours": colours,
         "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
@@ -169,7 +169,7 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
-          bond_blocks: bool = True) -> dict:
+          bond_blocks: bool = True, check_every: int = 1) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -198,6 +198,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                          f'[solver]\ntolerance = {float(tolerance)!r}\nschedule = "{schedule}"\n'
                          f'threads = {int(threads)}\ncolouring = "{colouring}"\n'
                          f'bond_blocks = {"true" if bond_blocks else "false"}\n'
+                         f'check_every = {int(check_every)}\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
                          "<bench shear>")
     sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
@@ -217,7 +218,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "bonds": bonds, "bonds_intact": sim.bonds_intact_count(),
         "mean_sweeps": float(sweeps.mean()),
         "max_sweeps_hit": int(np.count_nonzero(sweeps >= sim.settings.max_sweeps)),
-        "final_residual": float(residuals[-1].max()), "tolerance": tolerance, "arch": arch,
+        "final_residual": float(residuals[-1].max()), "tolerance": tolerance,
+        "check_every": sim.settings.check_every, "arch": arch,
         "precision": precision, "schedule": sim.schedule, "colours": colours,
         "bond_solve": "blocks" if sim.settings.bond_blocks else "pairs",
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
@@ -237,7 +239,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
 def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: str = "cpu",
             precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
             progress=None, schedule: str = "auto", threads: int = 2,
-            colouring: str = "auto", settle: float = 0.3) -> dict:
+            colouring: str = "auto", settle: float = 0.3, check_every: int = 1) -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after `settle` s of pouring
@@ -270,7 +272,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     for n in sizes:
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
         sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads,
-                         colouring=colouring)
+                         colouring=colouring, check_every=check_every)
         t0 = time.perf_counter()
         for _ in range(int(round(settle / sim.settings.time_step))):
             sim.step()

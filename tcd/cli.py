@@ -289,11 +289,12 @@ def _run_bench(args) -> dict:
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
                      tolerance=args.tolerance, out=args.out, progress=done,
                      schedule=args.schedule, threads=args.threads, colouring=args.colouring,
-                     settle=args.settle)
+                     settle=args.settle, check_every=args.check_every)
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
-                       threads=args.threads, colouring=args.colouring)
+                       threads=args.threads, colouring=args.colouring,
+                       check_every=args.check_every)
         if getattr(args, "samples", 1) > 1:
             options["samples"] = args.samples
         if getattr(args, "bond_solve", "blocks") != "blocks":
@@ -501,6 +502,9 @@ def _schedule_options(parser) -> None:
     parser.add_argument("--colouring", choices=("auto", "greedy", "rounds"), default="auto",
                         help="colouring of the coloured schedule: greedy (serial), rounds "
                         "(parallel); default greedy on the CPU, rounds on the GPU")
+    parser.add_argument("--check-every", type=_positive_int, default=1, metavar="K",
+                        help="sweeps between convergence checks (default 1; on a GPU each check "
+                        "waits for the device)")
 
 
 def _error(message) -> int:

@@ -246,18 +246,28 @@ def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
         assert spin < v @ down
 
 
+@pytest.mark.parametrize("check_every", [1, 3])
 @pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured-greedy", "coloured-rounds"])
-def test_vertical_column_carries_the_weight_above_each_contact(schedule, tol, schedule_on_backend):
+def test_vertical_column_carries_the_weight_above_each_contact(schedule, check_every, tol,
+                                                                schedule_on_backend):
     """(partitioned: two slabs of spheres, the contact between them a boundary item;
-    coloured: the two colourings, warm start and projection colour by colour)"""
+    coloured: the two colourings, warm start and projection colour by colour; check_every 3:
+    convergence tested every third sweep, so each step ends on a multiple of 3)"""
     schedule_on_backend(schedule)
     r = np.array([0.008, 0.004, 0.0056, 0.001, 0.0028, 0.008])
     z = np.cumsum(2 * r) - r
     x = np.column_stack([np.zeros(len(r)), np.zeros(len(r)), z])
     sim = Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
-                     settings=tight(**schedule_settings(schedule), threads=2),
+                     settings=tight(**schedule_settings(schedule), threads=2,
+                                    check_every=check_every),
                      domain=((-0.01, -0.01, -0.01), (0.01, 0.01, 0.1)))
-    sim.step(10)
+    sweeps = []
+    for _ in range(10):
+        sim.step()
+        sweeps.append(sim.last.sweeps)
+        assert sim.last.residual <= sim.settings.tolerance
+    assert all(k % check_every == 0 for k in sweeps), sweeps
+    assert max(sweeps) > 3, sweeps          # steps long enough for the check to matter
     c = sim.contact_arrays()
     m = mass(r)
     # contact below particle k carries the weight of particles k..end
