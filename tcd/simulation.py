@@ -45,6 +45,22 @@ def _auto_arch() -> str:
     return auto or backend.arch()
 
 
+def _colours_per_launch() -> int:
+    """Colours unrolled into one solve call of the coloured schedule: solver.COLOURS_PER_LAUNCH,
+    or the environment variable TCD_COLOURS_PER_LAUNCH (1 to 16), for measuring the GPU's
+    launch costs (each value compiles its own kernel; the numbers are the same for any)."""
+    text = os.environ.get("TCD_COLOURS_PER_LAUNCH", "")
+    if not text:
+        return sk.COLOURS_PER_LAUNCH
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if not 1 <= k <= 16:
+        raise ValueError(f"TCD_COLOURS_PER_LAUNCH={text!r}: expected an integer from 1 to 16")
+    return k
+
+
 def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.ndarray:
     """`values` as an (n, 3) float array: one 3-vector per particle, or (`broadcast`) one for
     all; ValueError naming `name` for any other shape (a shorter array was zero-padded, a
@@ -495,7 +511,7 @@ class Simulation:
     def _by_colours(self, ncol: int, kernel, *args) -> None:
         """kernel(*args, base, blocks, k) for the colours 0 .. ncol - 1, k = COLOURS_PER_LAUNCH
         colours per call, colour after colour (the *_colours kernels of tcd/solver.py)."""
-        k = sk.COLOURS_PER_LAUNCH
+        k = _colours_per_launch()
         for base in range(0, ncol, k):
             kernel(*args, base, self._blocks(), k)
 

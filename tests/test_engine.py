@@ -201,6 +201,34 @@ def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
     sim.close()
 
 
+def test_colours_per_launch_changes_no_number(monkeypatch):
+    """The coloured schedule runs k colours per kernel call (TCD_COLOURS_PER_LAUNCH, default
+    solver.COLOURS_PER_LAUNCH, for measuring a GPU's launch costs): the colours still run one
+    after the other, so any k gives the same numbers bit for bit; a bad value is refused."""
+    def run():
+        r, x = random_cloud(300, 5, box=0.03)
+        wl = [walls.plane((0, 0, 0.0), (0, 0, 1)), walls.plane((0, 0, 0.03), (0, 0, -1))]
+        sim = Simulation(r, x, walls=wl, settings=SolverSettings(schedule="coloured",
+                                                                 colouring="rounds",
+                                                                 max_sweeps=50),
+                         domain=((0, 0, 0), (0.03, 0.03, 0.03)))
+        sim.step(4)
+        assert sim.last.colours > 4          # more colours than one call holds
+        out = sim.positions(), sim.velocities(), sim.last.sweeps
+        sim.close()
+        return out
+    monkeypatch.delenv("TCD_COLOURS_PER_LAUNCH", raising=False)
+    base = run()
+    for k in ("1", "3"):            # 11 colours: 11 calls, or 3, 3, 3 and 2 colours
+        monkeypatch.setenv("TCD_COLOURS_PER_LAUNCH", k)
+        other = run()
+        assert np.array_equal(base[0], other[0]) and np.array_equal(base[1], other[1])
+        assert base[2] == other[2]
+    monkeypatch.setenv("TCD_COLOURS_PER_LAUNCH", "0")
+    with pytest.raises(ValueError, match="TCD_COLOURS_PER_LAUNCH='0': expected an integer"):
+        run()
+
+
 # --- contact mechanics ---------------------------------------------------------------------------
 @pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured"])
 def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol, schedule_on_backend):
