@@ -31,8 +31,9 @@ stage() {   # stage NAME LIMIT_S command...: output in $O/NAME.txt, its tail and
 S='samples/leutner_seed{seed}_prepared.h5'
 case "${1:-quick}" in
 next)       # next session, one call (DEADLINE=570): session 17's changes measured (largest-first
-            # colouring, --check-every, TCD_COLOURS_PER_LAUNCH), the 13 tests that failed on the H200 in session 17 (their
-            # reasons were cut with the log), then the 1e6 row with a short pouring
+            # colouring, --check-every, TCD_COLOURS_PER_LAUNCH), the 13 tests that failed on
+            # the H200 in session 17 (their reasons were cut with the log), then the 1e6 row
+            # with a short pouring
     stage shear_ce1 50 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
     stage shear_ce4 50 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4
     stage shear_k8 60 env TCD_COLOURS_PER_LAUNCH=8 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
