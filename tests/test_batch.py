@@ -125,15 +125,15 @@ def test_batch_rejects_mismatched_systems():
     """Its own simulations: it used `pair`, which another test of this file steps, so under
     `--dist load` (the GPU check) a worker could hand it two unstepped pours and the time
     mismatch was not there to refuse."""
-    a = pour(1, n=20)
-    b = pour(2, n=20, radii=a.radii())
+    a = pour(1)
+    b = pour(2, radii=a.radii())
     other = pour(4, n=20, settings=SolverSettings(max_sweeps=300, time_step=1e-4))
     with pytest.raises(ValueError, match="differs from simulation 0 in settings"):
         Simulation.batch([pour(5, n=20), other])
-    stepped = pour(3, n=20)
+    stepped = pour(3)                   # the size class the other tests step: no new compile
     stepped.step()
     with pytest.raises(ValueError, match="differs from simulation 0 in time"):
-        Simulation.batch([pour(5, n=20), stepped])
+        Simulation.batch([pour(5), stepped])
     with pytest.raises(ValueError, match="at least one"):
         Simulation.batch([])
     batch = Simulation.batch([a, b])
