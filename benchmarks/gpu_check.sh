@@ -30,13 +30,14 @@ stage() {   # stage NAME LIMIT_S command...: output in $O/NAME.txt, its tail and
 }
 S='samples/leutner_seed{seed}_prepared.h5'
 case "${1:-quick}" in
-next)       # next session, one call (DEADLINE=570): session 17's changes measured (largest-first
-            # colouring, --check-every, TCD_COLOURS_PER_LAUNCH), the 13 tests that failed on
-            # the H200 in session 17 (their reasons were cut with the log), then the 1e6 row
-            # with a short pouring
+next)       # next session, one call (DEADLINE=570): session 17's changes measured
+            # (largest-first colouring, --check-every, TCD_COLOURS_PER_LAUNCH, TCD_SOLVE_BASE),
+            # the 13 tests that failed on the H200 in session 17 (their reasons were cut with
+            # the log), then the 1e6 row with a short pouring
     stage shear_ce1 50 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
     stage shear_ce4 50 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4
     stage shear_k8 60 env TCD_COLOURS_PER_LAUNCH=8 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
+    stage shear_field 50 env TCD_SOLVE_BASE=field python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
     F="tests/test_batch.py::test_batch_rejects_mismatched_systems tests/test_batch.py::test_batch_steps_each_system_as_alone"
     F="$F tests/test_bonds.py::test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original"
     F="$F tests/test_bonds.py::test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction"
@@ -45,10 +46,10 @@ next)       # next session, one call (DEADLINE=570): session 17's changes measur
     F="$F tests/test_bonds.py::test_state_with_bonds_round_trips_bit_exactly_and_continues_identically"
     F="$F tests/test_bonds.py::test_tangential_creep_follows_2_1_plus_nu_F_J_t"
     F="$F tests/test_engine.py::test_neighbour_skin_changes_no_number tests/test_engine.py::test_wall_forces_equal_the_impulses_the_particles_received"
-    TAIL=60 stage pytest_gpu_failed 200 python3 -m pytest -p no:cacheprovider --arch gpu -n 13 \
-        --dist load --timeout 170 -v -rfE --tb=short $F
-    stage shear_batch5_ce4 90 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.002 --arch gpu --json --check-every 4
-    stage scaling_1e6 120 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.05 \
+    TAIL=60 stage pytest_gpu_failed 170 python3 -m pytest -p no:cacheprovider --arch gpu -n 13 \
+        --dist load --timeout 150 -v -rfE --tb=short $F
+    stage shear_batch5_ce4 80 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.002 --arch gpu --json --check-every 4
+    stage scaling_1e6 110 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.05 \
         --arch gpu --out "$O/scaling_gpu" --json
     ;;
 s17)        # session 17, one call (DEADLINE=420): named GPU test results, then the figures

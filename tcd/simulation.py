@@ -61,6 +61,17 @@ def _colours_per_launch() -> int:
     return k
 
 
+def _solve_base_in_field() -> bool:
+    """The environment variable TCD_SOLVE_BASE: "arg" (default: each solve call of the
+    coloured schedule gets its first colour as an argument, solver.solve_colours) or "field"
+    (read from the colour set and advanced on the device, solver.solve_colours_next: calls
+    without a runtime argument), for measuring a GPU's launch costs; the same numbers."""
+    text = os.environ.get("TCD_SOLVE_BASE", "") or "arg"
+    if text not in ("arg", "field"):
+        raise ValueError(f"TCD_SOLVE_BASE={text!r}: expected 'arg' or 'field'")
+    return text == "field"
+
+
 def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.ndarray:
     """`values` as an (n, 3) float array: one 3-vector per particle, or (`broadcast`) one for
     all; ValueError naming `name` for any other shape (a shorter array was zero-padded, a
@@ -552,8 +563,18 @@ class Simulation:
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
         cs = self.colours
         sweeps, residual = 0, 0.0
+        in_field = _solve_base_in_field()
+        if in_field:
+            k = _colours_per_launch()
+            calls = (ncol + k - 1) // k
+            cs.ncol[None] = ncol
+            cs.base[None] = 0
         while True:
-            self._by_colours(ncol, sk.solve_colours, p, wl, ct, bd, cs)
+            if in_field:
+                for _ in range(calls):
+                    sk.solve_colours_next(p, wl, ct, bd, cs, self._blocks(), k)
+            else:
+                self._by_colours(ncol, sk.solve_colours, p, wl, ct, bd, cs)
             sweeps += 1
             if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
                 residual = sk.sweep_residual(cs, items)

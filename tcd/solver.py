@@ -747,6 +747,27 @@ def solve_colours(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti
             solve_item(p, wl, ct, bd, cs, s, blocks)
 
 
+@ti.kernel
+def solve_colours_next(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                       bd: ti.template(), cs: ti.template(), blocks: ti.template(),
+                       k: ti.template()):
+    """solve_colours with its first colour read from cs.base instead of a runtime argument,
+    and cs.base advanced by k (back to 0 after the last of the cs.ncol colours, so a sweep is
+    ceil(ncol / k) calls and the next sweep starts at colour 0). A call without a runtime
+    argument has no argument buffer for a GPU launch to copy from host memory (CUDA may wait
+    for the stream before such a copy). Same numbers as solve_colours."""
+    for c in ti.static(range(k)):
+        for s in range(cs.start[ti.min(cs.base[None] + c, MAX_COLOURS)],
+                       cs.start[ti.min(cs.base[None] + c + 1, MAX_COLOURS)]):
+            solve_item(p, wl, ct, bd, cs, s, blocks)
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        nxt = cs.base[None] + k
+        if nxt >= cs.ncol[None]:
+            nxt = 0
+        cs.base[None] = nxt
+
+
 @ti.func
 def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                cs: ti.template(), s, blocks: ti.template()):

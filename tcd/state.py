@@ -336,6 +336,8 @@ class ColourSet:
         self.claim = _int(particle_capacity)
         self.best = _int(particle_capacity, ti.i64)
         self.coloured, self.active = _scalar(), _scalar()
+        # solver.solve_colours_next: the colours of this step, and the next call's first one
+        self.ncol, self.base = _scalar(), _scalar()
         # the residual's partial sums, one per chunk of RESIDUAL_CHUNK items
         self.partial = ti.Vector.field(2, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
         self.residual = ti.field(backend.real(), shape=())

@@ -203,8 +203,9 @@ def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
 
 def test_colours_per_launch_changes_no_number(monkeypatch):
     """The coloured schedule runs k colours per kernel call (TCD_COLOURS_PER_LAUNCH, default
-    solver.COLOURS_PER_LAUNCH, for measuring a GPU's launch costs): the colours still run one
-    after the other, so any k gives the same numbers bit for bit; a bad value is refused."""
+    solver.COLOURS_PER_LAUNCH), each call's first colour an argument or kept on the device
+    (TCD_SOLVE_BASE), for measuring a GPU's launch costs: the colours still run one after the
+    other, so every choice gives the same numbers bit for bit; a bad value is refused."""
     def run():
         r, x = random_cloud(300, 5, box=0.03)
         wl = [walls.plane((0, 0, 0.0), (0, 0, 1)), walls.plane((0, 0, 0.03), (0, 0, -1))]
@@ -218,12 +219,20 @@ def test_colours_per_launch_changes_no_number(monkeypatch):
         sim.close()
         return out
     monkeypatch.delenv("TCD_COLOURS_PER_LAUNCH", raising=False)
+    monkeypatch.delenv("TCD_SOLVE_BASE", raising=False)
     base = run()
-    for k in ("1", "3"):            # 11 colours: 11 calls, or 3, 3, 3 and 2 colours
+    # 11 colours: 11 calls, or 3, 3, 3 and 2 colours; TCD_SOLVE_BASE=field: the first colour
+    # of each call kept on the device (solver.solve_colours_next), with 3 and the default 4
+    for k, where in (("1", "arg"), ("3", "arg"), ("3", "field"), ("", "field")):
         monkeypatch.setenv("TCD_COLOURS_PER_LAUNCH", k)
+        monkeypatch.setenv("TCD_SOLVE_BASE", where)
         other = run()
         assert np.array_equal(base[0], other[0]) and np.array_equal(base[1], other[1])
         assert base[2] == other[2]
+    monkeypatch.setenv("TCD_SOLVE_BASE", "host")
+    with pytest.raises(ValueError, match="TCD_SOLVE_BASE='host': expected 'arg' or 'field'"):
+        run()
+    monkeypatch.setenv("TCD_SOLVE_BASE", "field")
     monkeypatch.setenv("TCD_COLOURS_PER_LAUNCH", "0")
     with pytest.raises(ValueError, match="TCD_COLOURS_PER_LAUNCH='0': expected an integer"):
         run()
