@@ -62,6 +62,10 @@ def course_radii(course: str, count: int, rng: np.random.Generator) -> np.ndarra
     return radii
 
 
+class ColumnTooTall(ValueError):
+    """lattice_column: the spheres need a taller column than max_height allows."""
+
+
 def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np.random.Generator,
                    *, max_height: float = 1.6, jitter: float = 2e-4,
                    spacing: float | None = None) -> np.ndarray:
@@ -97,7 +101,7 @@ def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np
     levels = int(math.ceil(len(radii) / per_level))
     height = levels * a
     if height > max_height:
-        raise ValueError(f"{len(radii)} spheres need a {height:.3f} m column, above max_height "
+        raise ColumnTooTall(f"{len(radii)} spheres need a {height:.3f} m column, above max_height "
                          f"{max_height} m")
     sites = np.concatenate([np.column_stack([sites_xy, np.full(per_level, z0 + (l + 0.5) * a)])
                             for l in range(levels)])

@@ -48,7 +48,8 @@ def _auto_arch() -> str:
 def _colours_per_launch() -> int:
     """Colours unrolled into one solve call of the coloured schedule: solver.COLOURS_PER_LAUNCH,
     or the environment variable TCD_COLOURS_PER_LAUNCH (1 to 16), for measuring the GPU's
-    launch costs (each value compiles its own kernel; the numbers are the same for any)."""
+    launch costs (each value compiles its own kernel; the numbers are the same for any). Read
+    when a Simulation is made."""
     text = os.environ.get("TCD_COLOURS_PER_LAUNCH", "")
     if not text:
         return sk.COLOURS_PER_LAUNCH
@@ -65,7 +66,8 @@ def _solve_base_in_field() -> bool:
     """The environment variable TCD_SOLVE_BASE: "arg" (default: each solve call of the
     coloured schedule gets its first colour as an argument, solver.solve_colours) or "field"
     (read from the colour set and advanced on the device, solver.solve_colours_next: calls
-    without a runtime argument), for measuring a GPU's launch costs; the same numbers."""
+    without a runtime argument), for measuring a GPU's launch costs; the same numbers. Read
+    when a Simulation is made."""
     text = os.environ.get("TCD_SOLVE_BASE", "") or "arg"
     if text not in ("arg", "field"):
         raise ValueError(f"TCD_SOLVE_BASE={text!r}: expected 'arg' or 'field'")
@@ -287,6 +289,9 @@ class Simulation:
         self.step_index = 0
         self.r_min = float(radius.min())
         self.alert = settings.alert_ratio * self.r_min
+        # the coloured schedule's launch shape (environment, for GPU measurements), read once
+        self._per_launch = _colours_per_launch()
+        self._base_in_field = _solve_base_in_field()
         self.schedule = settings.schedule
         if self.schedule == "auto":
             self.schedule = "serial" if _auto_arch() == "cpu" else "coloured"
@@ -520,9 +525,10 @@ class Simulation:
         return 1 if self.settings.bond_blocks else 0
 
     def _by_colours(self, ncol: int, kernel, *args) -> None:
-        """kernel(*args, base, blocks, k) for the colours 0 .. ncol - 1, k = COLOURS_PER_LAUNCH
-        colours per call, colour after colour (the *_colours kernels of tcd/solver.py)."""
-        k = _colours_per_launch()
+        """kernel(*args, base, blocks, k) for the colours 0 .. ncol - 1, k colours per call
+        (_colours_per_launch, read at construction), colour after colour (the *_colours
+        kernels of tcd/solver.py)."""
+        k = self._per_launch
         for base in range(0, ncol, k):
             kernel(*args, base, self._blocks(), k)
 
@@ -563,14 +569,13 @@ class Simulation:
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
         cs = self.colours
         sweeps, residual = 0, 0.0
-        in_field = _solve_base_in_field()
-        if in_field:
-            k = _colours_per_launch()
+        if self._base_in_field:
+            k = self._per_launch
             calls = (ncol + k - 1) // k
             cs.ncol[None] = ncol
             cs.base[None] = 0
         while True:
-            if in_field:
+            if self._base_in_field:
                 for _ in range(calls):
                     sk.solve_colours_next(p, wl, ct, bd, cs, self._blocks(), k)
             else:
