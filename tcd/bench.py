@@ -61,29 +61,94 @@ def bed_metrics(sim, radius: float = CYLINDER_RADIUS) -> dict:
 
 def _loop(sim, steps: int, per_system: bool = False):
     """Step and time the loop; the first step (compilation) is timed apart. Sweeps and
-    residual per step, or with `per_system` per step and batched system (steps x systems)."""
+    residual per step, or with `per_system` per step and batched system (steps x systems);
+    `per_step`: each timed step's wall time (s), contacts and time at its end (s)."""
     t0 = time.perf_counter()
     sim.step()
     compile_s = time.perf_counter() - t0
-    sweeps, residuals = [], []
+    sweeps, residuals, wall, contacts, clock = [], [], [], [], []
     t0 = time.perf_counter()
+    last = t0
     for _ in range(steps - 1):
         rec = sim.step()
+        now = time.perf_counter()
         sw, res = sim.system_stats() if per_system else (rec.sweeps, rec.residual)
         sweeps.append(sw)
         residuals.append(res)
+        wall.append(now - last)
+        contacts.append(rec.contacts)
+        clock.append(rec.time)
+        last = now
     loop_s = time.perf_counter() - t0
     colours = rec.colours if steps > 1 else 0       # the last step's (coloured schedule)
-    return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals), colours
+    per_step = {"wall_s": np.asarray(wall), "contacts": np.asarray(contacts, dtype=np.int64),
+                "time_s": np.asarray(clock)}
+    return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals), colours, per_step
+
+
+def phases(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> list:
+    """Where the loop's time went: the timed steps cut into `windows` runs of equal length
+    (by step), each with its simulated time span, mean sweeps (the largest over batched
+    systems), steps at the sweep cap, mean contacts and share of the loop's wall time."""
+    sweeps = np.asarray(sweeps)
+    if sweeps.ndim == 2:
+        sweeps = sweeps.max(axis=1)
+    n = len(sweeps)
+    total = float(per_step["wall_s"].sum())
+    out = []
+    for k in range(min(windows, n)):
+        a, b = k * n // min(windows, n), (k + 1) * n // min(windows, n)
+        if b <= a:
+            continue
+        w = float(per_step["wall_s"][a:b].sum())
+        out.append({"time_s": [round(float(per_step["time_s"][a]), 6),
+                               round(float(per_step["time_s"][b - 1]), 6)],
+                    "steps": b - a, "mean_sweeps": round(float(sweeps[a:b].mean()), 2),
+                    "max_sweeps_hit": int(np.count_nonzero(sweeps[a:b] >= max_sweeps)),
+                    "mean_contacts": round(float(per_step["contacts"][a:b].mean()), 1),
+                    "wall_s": round(w, 4), "wall_share": round(w / total, 4) if total > 0 else 0.0})
+    return out
+
+
+def check_trace(path) -> None:
+    """Refuse a trace path whose folder does not exist before the run, not after it."""
+    if path:
+        parent = pathlib.Path(path).parent
+        if not parent.is_dir():
+            raise FileNotFoundError(f"trace {path}: no such directory {parent}")
+
+
+def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
+    """One CSV row per timed step (step, time_s, sweeps, residual, contacts, wall_s; sweeps
+    and residual are the largest over batched systems), written to a temporary file and
+    renamed, so an interrupted write never leaves a partial trace."""
+    import csv
+    import os
+    check_trace(path)
+    path = pathlib.Path(path)
+    sweeps, residuals = np.asarray(sweeps), np.asarray(residuals)
+    if sweeps.ndim == 2:
+        sweeps, residuals = sweeps.max(axis=1), residuals.max(axis=1)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["step", "time_s", "sweeps", "residual", "contacts", "wall_s"])
+        for k in range(len(sweeps)):
+            w.writerow([k + 1, f"{per_step['time_s'][k]:.6f}", int(sweeps[k]),
+                        f"{residuals[k]:.6e}", int(per_step["contacts"][k]),
+                        f"{per_step['wall_s'][k]:.6e}"])
+    os.replace(tmp, path)
+    return path
 
 
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
          tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
-         colouring: str = "auto", check_every: int = 1) -> dict:
+         colouring: str = "auto", check_every: int = 1, trace: str | None = None) -> dict:
     """`schedule`, `threads`: the solver's (SolverSettings); `threads` only counts for the
-    partitioned schedule."""
+    partitioned schedule. `trace`: a CSV path for one row per timed step (write_trace)."""
     _init(arch, precision)
     _check_steps(time)
+    check_trace(trace)
     try:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every)
@@ -92,7 +157,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
                          f"use `tcd bench scaling --sizes {particles}`, whose cylinder widens "
                          "with N") from None
     steps = int(round(time / sim.settings.time_step))
-    compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps)
+    compile_s, loop_s, sweeps, residuals, colours, per_step = _loop(sim, steps)
     out = {
         "benchmark": "pour",
         "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
@@ -108,6 +173,9 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     if sim.schedule == "partitioned":
         out["threads"] = threads
     out.update(bed_metrics(sim))
+    out["phases"] = phases(per_step, sweeps, sim.settings.max_sweeps)
+    if trace:
+        out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
     return out
 
 
@@ -167,7 +235,7 @@ def bench_sample(particles: int, seed: int, tolerance: float):
 def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision: str = "f64",
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
-          bond_blocks: bool = True, check_every: int = 1) -> dict:
+          bond_blocks: bool = True, check_every: int = 1, trace: str | None = None) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -183,6 +251,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     from .runner import plan_shears
     from .simulation import Simulation
     _init(arch, precision)
+    check_trace(trace)
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
     seeds = [seed + k for k in range(samples)]
@@ -208,7 +277,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     bonds = sum(int(ph.info["bonds_created"]) for ph in phases)
     _check_steps(time, sim.settings.time_step)
     steps = int(round(time / sim.settings.time_step))
-    compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps, per_system=True)
+    compile_s, loop_s, sweeps, residuals, colours, per_step = _loop(sim, steps, per_system=True)
     out = {
         "benchmark": "shear", "seconds_per_particle_step": loop_s / (particles * (steps - 1)),
         "particles": particles, "samples": samples, "steps": steps,
@@ -230,6 +299,9 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                               "mean_sweeps": float(sweeps[:, k].mean()),
                               "final_residual": float(residuals[-1, k])}
                              for k, s in enumerate(seeds)]
+    out["phases"] = phases(per_step, sweeps, sim.settings.max_sweeps)
+    if trace:
+        out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
     sim.close()
     return out
 
@@ -275,7 +347,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         for _ in range(int(round(settle / sim.settings.time_step))):
             sim.step()
         pre_s = time.perf_counter() - t0
-        compile_s, loop_s, sweeps, residuals, colours = _loop(sim, steps)
+        compile_s, loop_s, sweeps, residuals, colours, _ = _loop(sim, steps)
         contacts = int(sim.contact_arrays()["i"].size)
         rows.append({"particles": int(n), "seconds_per_particle_step": loop_s / (n * (steps - 1)),
                      "mean_sweeps": float(sweeps.mean()), "final_residual": float(residuals[-1]),

@@ -77,6 +77,9 @@ def _flatten(data, prefix: str = "") -> list[tuple[str, object]]:
         name = f"{prefix}{key}"
         if isinstance(value, dict):
             rows += _flatten(value, f"{name}.")
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for k, item in enumerate(value):      # one row per item (e.g. the benchmarks' phases)
+                rows.append((f"{name}[{k}]", "; ".join(f"{a}={_cell(b)}" for a, b in item.items())))
         else:
             rows.append((name, value))
     return rows
@@ -311,6 +314,11 @@ def _run_bench(args) -> dict:
             options["sample"] = args.sample
         if args.time is not None:       # else the benchmark's own duration
             options["time"] = args.time
+        if args.trace:
+            if args.repeat > 1:
+                raise UsageError("--trace with --repeat: every run would write the same trace; "
+                                 "trace a single run")
+            options["trace"] = args.trace
         result = median_run(run, options, args.repeat)
     return result
 
@@ -468,6 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
         b.add_argument("--json", action="store_true", help="print JSON instead of a table")
         b.add_argument("--repeat", type=_positive_int, default=1, metavar="N",
                        help="run N times and report the median run (all N figures listed)")
+        b.add_argument("--trace", default=None, metavar="FILE.csv",
+                       help="write one CSV row per timed step (step, time_s, sweeps, residual, "
+                            "contacts, wall_s)")
         if name == "shear":
             b.add_argument("--sample", default=None, metavar="FILE.h5",
                            help="a prepared sample (prepared.h5 of a run) instead of a generated "

@@ -58,3 +58,30 @@ def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark():
     names the benchmark that widens the cylinder with N (the GPU's 1e6 row)."""
     with pytest.raises(ValueError, match=r"above max_height.*tcd bench scaling --sizes 1000000"):
         bench.pour(particles=1_000_000, time=0.01)
+
+
+def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path):
+    """The phases cut the timed steps into windows that add up to the whole loop (steps,
+    wall time, sweeps); the trace has one row per timed step with the same sweeps."""
+    trace = tmp_path / "pour.csv"
+    out = bench.pour(particles=60, time=0.02, trace=str(trace))
+    ph = out["phases"]
+    assert len(ph) == 10 and sum(p["steps"] for p in ph) == out["steps"] - 1 == 99
+    assert sum(p["wall_s"] for p in ph) == pytest.approx(out["loop_wall_s"], rel=0.05)
+    assert sum(p["wall_share"] for p in ph) == pytest.approx(1.0, abs=1e-3)
+    rows = list(csv.DictReader(open(trace)))
+    assert out["trace"] == str(trace) and len(rows) == 99
+    sweeps = [int(r["sweeps"]) for r in rows]
+    assert sum(sweeps) / len(sweeps) == pytest.approx(out["mean_sweeps"])
+    assert sum(p["mean_sweeps"] * p["steps"] for p in ph) == pytest.approx(sum(sweeps), rel=1e-3)
+    times = [float(r["time_s"]) for r in rows]
+    assert times[0] == pytest.approx(2 * 2e-4) and times[-1] == pytest.approx(0.02)
+    assert ph[0]["time_s"][0] == pytest.approx(times[0]) and ph[-1]["time_s"][1] == pytest.approx(times[-1])
+    assert int(rows[-1]["contacts"]) == out["contacts"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pour.csv"]     # no .part left
+
+
+def test_a_trace_into_a_missing_folder_is_refused_before_the_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: pytest.fail("the pour was run"))
+    with pytest.raises(FileNotFoundError, match="no such directory"):
+        bench.pour(particles=60, time=0.02, trace=str(tmp_path / "nope" / "pour.csv"))

@@ -223,6 +223,10 @@ def test_info_not_hdf5(tmp_path, capsys):
      ("scaling", dict(sizes=[1000000], steps=10, arch="cpu", precision="f64", tolerance=1e-4,
                       out="renders/scaling", schedule="auto", threads=2, colouring="auto",
                       settle=0.05, check_every=1))),
+    (["pour", "--trace", "t.csv"],
+     ("pour", dict(particles=2600, arch="cpu", precision="f64", tolerance=1e-4, seed=1,
+                   schedule="auto", threads=2, colouring="auto", check_every=1,
+                   trace="t.csv"))),
     (["shear", "--bond-solve", "pairs", "--check-every", "4"],
      ("shear", dict(particles=5200, arch="cpu", precision="f64", tolerance=1e-4, seed=1,
                     schedule="auto", threads=2, colouring="auto", check_every=4,
@@ -277,6 +281,20 @@ def test_bench_repeat_reports_the_median_run(stub, capsys):
     assert printed["repeats"] == 3
     assert printed["repeats_seconds_per_particle_step"] == [3e-6, 1e-6, 2e-6]
     assert main(["bench", "pour", "--repeat", "0"]) == 2
+    # every run would overwrite one trace: refused before any run
+    assert main(["bench", "pour", "--repeat", "3", "--trace", "t.csv"]) == 2
+    assert len(calls) == 3 and "--trace with --repeat" in capsys.readouterr().err
+
+
+def test_bench_table_prints_one_row_per_phase(stub, capsys):
+    def pour(**kwargs):
+        return {"benchmark": "pour", "phases": [{"time_s": [0.0, 0.5], "mean_sweeps": 2.5},
+                                                {"time_s": [0.5, 1.0], "mean_sweeps": 900.0}]}
+    stub("bench", pour=pour)
+    assert main(["bench", "pour"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any(l.startswith("phases[0]") and "time_s=0, 0.5; mean_sweeps=2.5" in l for l in lines)
+    assert any(l.startswith("phases[1]") and "mean_sweeps=900" in l for l in lines)
 
 
 def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backend, monkeypatch):
