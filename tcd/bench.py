@@ -86,7 +86,7 @@ def _loop(sim, steps: int, per_system: bool = False):
     return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals), colours, per_step
 
 
-def phases(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> list:
+def phase_table(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> list:
     """Where the loop's time went: the timed steps cut into `windows` runs of equal length
     (by step), each with its simulated time span, mean sweeps (the largest over batched
     systems), steps at the sweep cap, mean contacts and share of the loop's wall time."""
@@ -173,7 +173,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     if sim.schedule == "partitioned":
         out["threads"] = threads
     out.update(bed_metrics(sim))
-    out["phases"] = phases(per_step, sweeps, sim.settings.max_sweeps)
+    out["phases"] = phase_table(per_step, sweeps, sim.settings.max_sweeps)
     if trace:
         out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
     return out
@@ -299,7 +299,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                               "mean_sweeps": float(sweeps[:, k].mean()),
                               "final_residual": float(residuals[-1, k])}
                              for k, s in enumerate(seeds)]
-    out["phases"] = phases(per_step, sweeps, sim.settings.max_sweeps)
+    out["phases"] = phase_table(per_step, sweeps, sim.settings.max_sweeps)
     if trace:
         out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
     sim.close()

@@ -1,4 +1,5 @@
 """End to end through `tcd run`: outputs, resume after a kill, crash-safe files (issue 4)."""
+import csv
 import json
 import os
 import pathlib
@@ -368,3 +369,21 @@ def test_a_shear_starts_only_from_an_unbonded_prepared_sample(micro_run, tmp_pat
     sim = runner.load_prepared(scn, out / "sample_3" / "prepared.h5")
     assert sim.n == len(arrays["particles/radius"])
     sim.close()
+
+
+def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_run, tmp_path):
+    """`tcd bench shear --sample FILE --trace CSV` on the micro run's prepared sample: the
+    figures of the loop, its ten phases adding up to it, one trace row per timed step."""
+    from tcd import bench
+    _, out = micro_run
+    trace = tmp_path / "shear.csv"
+    res = bench.shear(time=0.004, sample=str(out / "sample_3" / "prepared.h5"), trace=str(trace))
+    assert res["particles"] == 80 and res["steps"] == 20 and res["bonds"] > 0
+    assert res["seconds_per_particle_step"] > 0
+    ph = res["phases"]
+    assert len(ph) == 10 and sum(p["steps"] for p in ph) == 19
+    assert sum(p["wall_s"] for p in ph) == pytest.approx(res["loop_wall_s"], rel=0.05)
+    rows = list(csv.DictReader(open(trace)))
+    assert len(rows) == 19
+    assert np.mean([int(r["sweeps"]) for r in rows]) == pytest.approx(res["mean_sweeps"])
+    assert float(rows[-1]["residual"]) == pytest.approx(res["final_residual"], rel=1e-5)
