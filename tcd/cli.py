@@ -292,7 +292,8 @@ def _run_bench(args) -> dict:
         result = run(sizes=sizes, steps=args.steps, arch=args.arch, precision=args.precision,
                      tolerance=args.tolerance, out=args.out, progress=done,
                      schedule=args.schedule, threads=args.threads, colouring=args.colouring,
-                     settle=args.settle, check_every=args.check_every)
+                     settle=args.settle, check_every=args.check_every,
+                     **({"sweep_order": args.sweep_order} if args.sweep_order != "symmetric" else {}))
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
@@ -302,6 +303,8 @@ def _run_bench(args) -> dict:
             options["samples"] = args.samples
         if getattr(args, "bond_solve", "blocks") != "blocks":
             options["bond_blocks"] = False
+        if args.sweep_order != "symmetric":
+            options["sweep_order"] = args.sweep_order
         if getattr(args, "sample", None):
             for k in range(getattr(args, "samples", 1)):
                 try:
@@ -510,6 +513,9 @@ def _schedule_options(parser) -> None:
                         "CPU, coloured on the GPU)")
     parser.add_argument("--threads", type=_positive_int, default=2, metavar="P",
                         help="threads of the partitioned schedule (its numbers depend on P)")
+    parser.add_argument("--sweep-order", choices=("forward", "symmetric"), default="symmetric",
+                        help="Gauss-Seidel sweeps forward and backward in turn (default) or "
+                             "all forward (fewer sweeps on a shear)")
     parser.add_argument("--colouring", choices=("auto", "greedy", "rounds"), default="auto",
                         help="colouring of the coloured schedule: greedy (serial), rounds "
                         "(parallel); default greedy on the CPU, rounds on the GPU")

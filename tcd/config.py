@@ -104,7 +104,9 @@ class SolverConfig(_Model):
     convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
     "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
     `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
-    "none"; alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
+    "none"; sweep_order: "symmetric" (forward and backward sweeps alternate, the default) or
+    "forward" (fewer sweeps on a shear; larger overlaps under a vibrating plate);
+    alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
     overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
     position projection leaves contacts alone; projection_passes: its sweeps (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
@@ -122,6 +124,7 @@ class SolverConfig(_Model):
     schedule: Literal["auto", "serial", "partitioned", "coloured"] = "auto"
     threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
+    sweep_order: Literal["forward", "symmetric"] = "symmetric"
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
     overlap_slop: float = Field(0.002, ge=0)
@@ -144,7 +147,8 @@ class SolverConfig(_Model):
                               tolerance=self.tolerance, max_sweeps=self.max_sweeps,
                               check_every=self.check_every, schedule=self.schedule,
                               threads=self.threads,
-                              acceleration=self.acceleration, alert_ratio=self.alert_ratio,
+                              acceleration=self.acceleration, sweep_order=self.sweep_order,
+                              alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,
                               bond_blocks=self.bond_blocks,

@@ -11,8 +11,8 @@ P interior lists at once (unit k: slab k's bond items, then its contacts), then,
 thread, the boundary list (bond items, then contacts); then the bonds' changes in P units at
 once; then, on one thread, the convergence test and the conjugate-gradient (NNCG) momentum of
 the boundary bonds and contacts; the momentum of the interior bonds and contacts opens the
-next sweep's units. Forward and backward sweeps alternate inside every list, as in
-`solver.nlgs_serial`.
+next sweep's units. Every list is swept forward, or forward and backward in turn (the
+`symmetric` sweep order), as in `solver.nlgs_serial`.
 Two interior lists share no dynamic body, so running them at once gives exactly the numbers of
 running them one after the other: the result depends on P (it fixes the visiting order), never
 on thread timing or on how many threads Taichi really has. Same scenario, same P, same numbers.
@@ -357,11 +357,11 @@ def close_sweep(p: ti.template(), ct: ti.template(), bd: ti.template(), st: ti.t
 @ti.kernel
 def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                      st: ti.template(), pt: ti.template(), parts: ti.i32, max_sweeps: ti.i32,
-                     tol: float, check_every: ti.i32, accel: ti.template(),
-                     blocks: ti.template()):
+                     tol: float, check_every: ti.i32, symmetric: ti.i32,
+                     accel: ti.template(), blocks: ti.template()):
     """All sweeps of one step (see the module docstring); the items must have been listed by
-    `partition_items` for the same `parts` and `blocks`. `accel` and `blocks` as in
-    solver.nlgs_serial."""
+    `partition_items` for the same `parts` and `blocks`. `symmetric`, `accel` and `blocks` as
+    in solver.nlgs_serial."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         pt.claim[None] = 0
@@ -395,10 +395,12 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
                     measure = 0
                     if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
                         measure = 1
-                    sweep_list(p, wl, ct, bd, pt, k, s % 2, measure, accel, blocks)
+                    sweep_list(p, wl, ct, bd, pt, k, (s % 2) * symmetric, measure, accel,
+                              blocks)
                     if ti.atomic_add(pt.finished[None], 1) == ph * parts + parts - 1:
                         # the last solver of the sweep: the boundary list, then the bookkeeping
-                        sweep_list(p, wl, ct, bd, pt, parts, s % 2, measure, accel, blocks)
+                        sweep_list(p, wl, ct, bd, pt, parts, (s % 2) * symmetric, measure, accel,
+                              blocks)
                         ti.atomic_add(pt.released[None], 1)
                 else:
                     bond_changes(bd, pt, k, parts)

@@ -8,6 +8,7 @@ import pytest
 
 from tcd.config import (BackendConfig, PrepareStage, Scenario, ScenarioError, ShearStage,
                         load_scenario, parse_scenario)
+from tcd.simulation import SolverSettings
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -30,6 +31,7 @@ schedule = "coloured"
 alert_ratio = 0.2
 gravity = 9.8
 colouring = "rounds"
+sweep_order = "forward"
 
 [material]
 density = 2500
@@ -198,6 +200,8 @@ def test_to_settings_and_to_law_carry_the_values():
     assert (st.time_step, st.theta, st.tolerance, st.max_sweeps, st.check_every) == \
         (1e-4, 0.75, 1e-5, 500, 5)
     assert (st.schedule, st.alert_ratio, st.colouring) == ("coloured", 0.2, "rounds")
+    assert st.sweep_order == "forward"
+    assert parse_scenario(MINIMAL).solver.to_settings().sweep_order == "symmetric"
     assert tuple(st.gravity) == (0.0, 0.0, -9.8)
     law = s.bond.to_law()
     assert law.mode == "burgers"
@@ -469,6 +473,13 @@ def test_unknown_colouring_is_refused():
     text = FULL.replace('colouring = "rounds"', 'colouring = "random"')
     with pytest.raises(ScenarioError, match="colouring"):
         parse_scenario(text)
+
+
+def test_unknown_sweep_order_is_refused(tmp_path):
+    err = refusal(tmp_path, FULL.replace('sweep_order = "forward"', 'sweep_order = "backward"'))
+    assert_names(err, "solver.sweep_order", "'forward'", "'symmetric'")
+    with pytest.raises(ValueError, match="sweep_order must be one of .*'backward'"):
+        SolverSettings(sweep_order="backward")
 
 
 def test_a_jitter_too_wide_for_the_column_is_named(tmp_path):
