@@ -88,20 +88,26 @@ def _loop(sim, steps: int, per_system: bool = False):
     return compile_s, loop_s, np.asarray(sweeps), np.asarray(residuals), colours, per_step
 
 
+def _worst_over_systems(sweeps, residuals):
+    """Per timed step, the most sweeps and the largest residual over batched systems (a
+    (steps x systems) array from `_loop(per_system=True)`), or the arrays as they are."""
+    sweeps, residuals = np.asarray(sweeps), np.asarray(residuals)
+    if sweeps.ndim == 2:
+        return sweeps.max(axis=1), residuals.max(axis=1)
+    return sweeps, residuals
+
+
 def phase_table(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> list:
     """Where the loop's time went: the timed steps cut into `windows` runs of equal length
-    (by step), each with its simulated time span, mean sweeps (the largest over batched
-    systems), steps at the sweep cap, mean contacts and share of the loop's wall time."""
-    sweeps = np.asarray(sweeps)
-    if sweeps.ndim == 2:
-        sweeps = sweeps.max(axis=1)
+    (by step), each with its simulated time span, mean sweeps (`sweeps` per step, the worst
+    over batched systems), steps at the sweep cap, mean contacts and share of the loop's
+    wall time."""
     n = len(sweeps)
+    m = min(windows, n)
     total = float(per_step["wall_s"].sum())
     out = []
-    for k in range(min(windows, n)):
-        a, b = k * n // min(windows, n), (k + 1) * n // min(windows, n)
-        if b <= a:
-            continue
+    for k in range(m):
+        a, b = k * n // m, (k + 1) * n // m          # m <= n: every window has a step
         w = float(per_step["wall_s"][a:b].sum())
         out.append({"time_s": [round(float(per_step["time_s"][a]), 6),
                                round(float(per_step["time_s"][b - 1]), 6)],
@@ -121,25 +127,20 @@ def check_trace(path) -> None:
 
 
 def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
-    """One CSV row per timed step (step, time_s, sweeps, residual, contacts, wall_s; sweeps
-    and residual are the largest over batched systems), written to a temporary file and
-    renamed, so an interrupted write never leaves a partial trace."""
+    """One CSV row per timed step (step, time_s, sweeps, residual, contacts, wall_s; `sweeps`
+    and `residuals` per step, the worst over batched systems), written through
+    io.atomic_path, so an interrupted write never leaves a partial trace."""
     import csv
-    import os
+    from . import io
     check_trace(path)
     path = pathlib.Path(path)
-    sweeps, residuals = np.asarray(sweeps), np.asarray(residuals)
-    if sweeps.ndim == 2:
-        sweeps, residuals = sweeps.max(axis=1), residuals.max(axis=1)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "w", newline="") as f:
+    with io.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["step", "time_s", "sweeps", "residual", "contacts", "wall_s"])
         for k in range(len(sweeps)):
             w.writerow([k + 1, f"{per_step['time_s'][k]:.6f}", int(sweeps[k]),
                         f"{residuals[k]:.6e}", int(per_step["contacts"][k]),
                         f"{per_step['wall_s'][k]:.6e}"])
-    os.replace(tmp, path)
     return path
 
 
@@ -176,9 +177,10 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     if sim.schedule == "partitioned":
         out["threads"] = threads
     out.update(bed_metrics(sim))
-    out["phases"] = phase_table(per_step, sweeps, sim.settings.max_sweeps)
+    worst_sweeps, worst_residuals = _worst_over_systems(sweeps, residuals)
+    out["phases"] = phase_table(per_step, worst_sweeps, sim.settings.max_sweeps)
     if trace:
-        out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
+        out["trace"] = str(write_trace(trace, per_step, worst_sweeps, worst_residuals))
     return out
 
 
@@ -304,9 +306,10 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                               "mean_sweeps": float(sweeps[:, k].mean()),
                               "final_residual": float(residuals[-1, k])}
                              for k, s in enumerate(seeds)]
-    out["phases"] = phase_table(per_step, sweeps, sim.settings.max_sweeps)
+    worst_sweeps, worst_residuals = _worst_over_systems(sweeps, residuals)
+    out["phases"] = phase_table(per_step, worst_sweeps, sim.settings.max_sweeps)
     if trace:
-        out["trace"] = str(write_trace(trace, per_step, sweeps, residuals))
+        out["trace"] = str(write_trace(trace, per_step, worst_sweeps, worst_residuals))
     sim.close()
     return out
 
