@@ -20,6 +20,9 @@ class BackendUnavailable(RuntimeError):
     """The backend asked for is not on this machine (arch='gpu' without a GPU)."""
 
 
+OFFLINE_CACHE_BYTES = 1 << 30     # Taichi's compiled-kernel cache limit (see init)
+
+
 def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
          cpu_threads: int | None = None) -> None:
     """Initialise Taichi for `arch` ("cpu" or "gpu") and `precision` ("f64" or "f32").
@@ -46,6 +49,14 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": int(cpu_threads)}
+    if not os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES"):
+        # Taichi's offline kernel cache keeps 100 MB by default and evicts a quarter of it (least
+        # recently used) when a process ends above that. tcd's kernels for a few capacity classes
+        # in f64 and f32 exceed it (the test suite compiles about 96 MB), so runs evicted each
+        # other's kernels and compiled them again (measured: tests/test_batch.py 119 s after
+        # such evictions, 35 s with its kernels cached). TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES
+        # (bytes) overrides this limit.
+        extra["offline_cache_max_size_of_files"] = OFFLINE_CACHE_BYTES
     if os.environ.get("TCD_KERNEL_PROFILER", "") not in ("", "0"):
         extra["kernel_profiler"] = True     # benchmarks/profile.py: time per kernel
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,

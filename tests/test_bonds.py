@@ -273,6 +273,7 @@ def _bonded_pile(refit: bool):
     return sim, before, listed
 
 
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
     """Bonded pairs leave the contact list; the buffer shrinks to fit after the next step and
     the trajectory is the same, bit for bit, as with the old buffer."""
@@ -290,6 +291,7 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
     kept.close()
 
 
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original():
     """A bonded state loaded into a new simulation (a resumed run, a batch) starts with a
     buffer sized for an unbonded sample; it is refitted after the next step, as after

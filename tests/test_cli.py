@@ -380,6 +380,20 @@ def test_gpu_backend_search_never_probes_opengl(monkeypatch):
     assert ti.opengl not in probed and len(probed) == len(tcd.backend.GPU_ARCHS)
 
 
+def test_init_raises_the_kernel_cache_limit_unless_the_environment_sets_it(backend):
+    """tcd.init gives Taichi's offline kernel cache 1 GiB instead of its 100 MB (one run of the
+    test suite compiles about 96 MB: at 100 MB runs evicted each other's kernels); the
+    environment variable TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES, when set, is Taichi's to apply."""
+    import os
+    import taichi as ti
+    limit = ti.lang.impl.current_cfg().offline_cache_max_size_of_files
+    env = os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES")
+    if env:
+        assert limit == int(env)
+    else:
+        assert limit == tcd.backend.OFFLINE_CACHE_BYTES > 100 * 2**20
+
+
 @pytest.mark.parametrize("command", [["bench", "pour", "--particles", "10", "--time", "0.001"],
                                      ["run", str(ROOT / "scenarios" / "tiny.toml")]])
 def test_gpu_requested_without_a_gpu_is_a_clear_error_and_writes_nothing(command, tmp_path):

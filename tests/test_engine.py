@@ -131,6 +131,7 @@ def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
     assert (0, 1) in set(zip(c["i"].tolist(), c["j"].tolist()))
 
 
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_neighbour_skin_changes_no_number():
     """Any skin gives the same contacts, so the same numbers bit for bit; only the count of
     list builds changes (skin 0: each grain's margin is three times its reach)."""
@@ -201,6 +202,7 @@ def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
     sim.close()
 
 
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_colours_per_launch_changes_no_number(monkeypatch):
     """The coloured schedule runs k colours per kernel call (TCD_COLOURS_PER_LAUNCH, default
     solver.COLOURS_PER_LAUNCH), each call's first colour an argument or kept on the device
