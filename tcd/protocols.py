@@ -29,6 +29,11 @@ ratcheted into a jammed bed, one step down whenever the push had dropped, each s
 overlaps that no projection can remove under a plate that never rises, and a locked-in force
 of hundreds of times the weight: the scaled twin ended with overlaps of 1.2 to 3.6 % of the
 smallest diameter in three seeds of five.) The final heights are then measured, not assumed.
+On a bed jammed above its target (the scaled twin; the full-size samples end below theirs) the
+plate then dithers, one step into the bed and one back, and those steps stop at the sweep cap.
+A plate that stayed where it first backed off made them converge but kept the vibration's
+overlaps (up to 4 % of the smallest diameter, against below 1 %): the dithering lets the
+position projection remove them (docs/measurements.md, session 19).
 
 Leutner shear (section 8): bond every particle contact, replace the mould by two rings with a
 gap at the layer interface, move the upper ring and the top plate horizontally at constant
