@@ -130,8 +130,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                                          scenario.backend.arch, scenario.backend.precision,
                                          seed, str(out / f"sample_{seed}"), resume, progress)
                        for seed in pending}
-            for seed, future in futures.items():
-                done[seed] = future.result()
+            with ForwardTerm(pool):
+                for seed, future in futures.items():
+                    done[seed] = future.result()
     else:
         backend.init(scenario.backend.arch, scenario.backend.precision)
         for seed in pending:
@@ -358,15 +359,17 @@ def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progres
 
 
 class DeferredInterrupt:
-    """Ctrl-C (SIGINT) during a run takes effect at the end of the current step: the step loop
-    writes a checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes
-    from where it was stopped (not from the last periodic checkpoint, or from nothing when none
-    was written yet). A second Ctrl-C stops at once. Installed only where Python's own SIGINT
-    handler is in force, in the main thread (a run started with SIGINT ignored keeps ignoring)."""
+    """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
+    job) during a run takes effect at the end of the current step: the step loop writes a
+    checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
+    where it was stopped (not from the last periodic checkpoint, or from nothing when none was
+    written yet). A second signal stops at once. Installed only in the main thread, and for
+    each signal only where its default action is in force (Python's own handler for SIGINT,
+    SIG_DFL for SIGTERM): a run started with a signal ignored keeps ignoring it."""
 
     def __init__(self):
         self.pending = False
-        self._old = None
+        self._old = {}
 
     def _handler(self, signum, frame):
         if self.pending:
@@ -374,14 +377,47 @@ class DeferredInterrupt:
         self.pending = True
 
     def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                self._old[signal.SIGINT] = signal.signal(signal.SIGINT, self._handler)
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                self._old[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        for signum, old in self._old.items():
+            signal.signal(signum, old)
+        self._old = {}
+        return False
+
+
+class ForwardTerm:
+    """While samples run in worker processes (`--jobs N`), a SIGTERM to the parent is passed on
+    to the workers, each of which checkpoints at the end of its step and stops (their
+    KeyboardInterrupt comes back through the futures), instead of killing the parent and
+    leaving the workers running on their own. (Ctrl-C in a terminal reaches every process of
+    the job already.) Installed only in the main thread and where SIGTERM's default is in force."""
+
+    def __init__(self, pool):
+        self.pool, self._old = pool, None
+
+    def _handler(self, signum, frame):
+        # ProcessPoolExecutor keeps its worker processes in _processes (pid -> Process)
+        for proc in list(getattr(self.pool, "_processes", {}).values()):
+            try:
+                os.kill(proc.pid, signal.SIGTERM)
+            except (ProcessLookupError, AttributeError):
+                pass
+
+    def __enter__(self):
         if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
-            self._old = signal.signal(signal.SIGINT, self._handler)
+                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL):
+            self._old = signal.signal(signal.SIGTERM, self._handler)
         return self
 
     def __exit__(self, *exc):
         if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+            signal.signal(signal.SIGTERM, self._old)
         return False
 
 

@@ -183,11 +183,13 @@ def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(micro_run, tmp_path,
-                                                                                monkeypatch):
-    """Ctrl-C takes effect at the end of the step: a checkpoint of that step is written (here no
-    periodic one would have been), the run raises KeyboardInterrupt, and --resume ends with the
-    same numbers as the uninterrupted run."""
+                                                                                monkeypatch, signum):
+    """Ctrl-C (SIGINT), or SIGTERM (`kill`, a batch scheduler ending a job), takes effect at
+    the end of the step: a checkpoint of that step is written (here no periodic one would have
+    been), the run raises KeyboardInterrupt, and --resume ends with the same numbers as the
+    uninterrupted run."""
     from tcd import config, runner
     from tcd.simulation import Simulation
     scenario, out = micro_run
@@ -199,17 +201,19 @@ def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(m
     def step_then_ctrl_c(self, count=1):
         calls["n"] += 1
         if calls["n"] == 37:
-            os.kill(os.getpid(), signal.SIGINT)      # arrives inside the loop, between steps
+            os.kill(os.getpid(), signum)             # arrives inside the loop, between steps
         return real_step(self, count)
     monkeypatch.setattr(Simulation, "step", step_then_ctrl_c)
-    # as in a terminal: Python's own handler (a background shell, as CI may be, ignores SIGINT)
-    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    # the defaults, as in a terminal: Python's own SIGINT handler (a background shell, as CI
+    # may be, ignores SIGINT), SIGTERM's default action (to end the process)
+    default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+    outer = signal.signal(signum, default)
     try:
         with pytest.raises(KeyboardInterrupt):
             runner.run_sample(scn, 3, tmp_path / "sample_3", resume=False, progress=False)
-        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+        assert signal.getsignal(signum) == default                  # handler restored
     finally:
-        signal.signal(signal.SIGINT, outer)
+        signal.signal(signum, outer)
     _, meta = io.load_checkpoint(tmp_path / "sample_3" / "checkpoint.h5")
     assert meta["step"] == 37
     monkeypatch.setattr(Simulation, "step", real_step)
@@ -218,6 +222,28 @@ def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(m
     two = io.read_series(tmp_path / "sample_3" / "shear_series.h5")
     for key in ("displacement", "shear_stress", "bonds_intact"):
         assert np.array_equal(one[key], two[key]), key
+
+
+def test_sigterm_to_a_parallel_run_is_passed_on_to_its_workers(tmp_path):
+    """With --jobs N the samples run in worker processes: a SIGTERM to the parent is sent on to
+    every worker (each then checkpoints at the end of its step and stops) and the parent
+    carries on waiting for them, instead of dying and leaving them to run on their own."""
+    from tcd import runner
+
+    class Pool:                    # what ForwardTerm reads of a ProcessPoolExecutor
+        _processes = {}
+    worker = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    Pool._processes = {worker.pid: worker}
+    outer = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with runner.ForwardTerm(Pool()):
+            os.kill(os.getpid(), signal.SIGTERM)      # this process survives it ...
+            assert worker.wait(timeout=30) == -signal.SIGTERM       # ... its worker gets it
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL   # handler restored
+    finally:
+        signal.signal(signal.SIGTERM, outer)
+        if worker.poll() is None:
+            worker.kill()
 
 
 def _shear_only(prepared, seeds="[3]"):
