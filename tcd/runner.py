@@ -402,11 +402,12 @@ class ForwardTerm:
         self.pool, self._old = pool, None
 
     def _handler(self, signum, frame):
-        # ProcessPoolExecutor keeps its worker processes in _processes (pid -> Process)
-        for proc in list(getattr(self.pool, "_processes", {}).values()):
+        # ProcessPoolExecutor keeps its worker processes in _processes (pid -> Process; None
+        # once it has shut down)
+        for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
             try:
                 os.kill(proc.pid, signal.SIGTERM)
-            except (ProcessLookupError, AttributeError):
+            except ProcessLookupError:          # that worker has just ended
                 pass
 
     def __enter__(self):
