@@ -358,30 +358,23 @@ def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progres
     return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
-class DeferredInterrupt:
-    """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
-    job) during a run takes effect at the end of the current step: the step loop writes a
-    checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
-    where it was stopped (not from the last periodic checkpoint, or from nothing when none was
-    written yet). A second signal stops at once. Installed only in the main thread, and for
-    each signal only where its default action is in force (Python's own handler for SIGINT,
-    SIG_DFL for SIGTERM): a run started with a signal ignored keeps ignoring it."""
-
-    def __init__(self):
-        self.pending = False
-        self._old = {}
+class _SignalScope:
+    """While open, `_handler` handles each of `signals`, installed only in the main thread and
+    only where the signal's default action is in force (Python's own handler for SIGINT,
+    SIG_DFL for others): a process started with a signal ignored keeps ignoring it. The
+    previous handlers come back on exit."""
+    signals: tuple = ()
 
     def _handler(self, signum, frame):
-        if self.pending:
-            raise KeyboardInterrupt
-        self.pending = True
+        raise NotImplementedError
 
     def __enter__(self):
+        self._old = {}
         if threading.current_thread() is threading.main_thread():
-            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-                self._old[signal.SIGINT] = signal.signal(signal.SIGINT, self._handler)
-            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
-                self._old[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._handler)
+            for signum in self.signals:
+                default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+                if signal.getsignal(signum) == default:
+                    self._old[signum] = signal.signal(signum, self._handler)
         return self
 
     def __exit__(self, *exc):
@@ -391,15 +384,33 @@ class DeferredInterrupt:
         return False
 
 
-class ForwardTerm:
+class DeferredInterrupt(_SignalScope):
+    """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
+    job) during a run takes effect at the end of the current step: the step loop writes a
+    checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
+    where it was stopped (not from the last periodic checkpoint, or from nothing when none was
+    written yet). A second signal stops at once. Installed as _SignalScope says."""
+    signals = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.pending = False
+
+    def _handler(self, signum, frame):
+        if self.pending:
+            raise KeyboardInterrupt
+        self.pending = True
+
+
+class ForwardTerm(_SignalScope):
     """While samples run in worker processes (`--jobs N`), a SIGTERM to the parent is passed on
     to the workers, each of which checkpoints at the end of its step and stops (their
     KeyboardInterrupt comes back through the futures), instead of killing the parent and
     leaving the workers running on their own. (Ctrl-C in a terminal reaches every process of
-    the job already.) Installed only in the main thread and where SIGTERM's default is in force."""
+    the job already.) Installed as _SignalScope says."""
+    signals = (signal.SIGTERM,)
 
     def __init__(self, pool):
-        self.pool, self._old = pool, None
+        self.pool = pool
 
     def _handler(self, signum, frame):
         # ProcessPoolExecutor keeps its worker processes in _processes (pid -> Process; None
@@ -409,17 +420,6 @@ class ForwardTerm:
                 os.kill(proc.pid, signal.SIGTERM)
             except ProcessLookupError:          # that worker has just ended
                 pass
-
-    def __enter__(self):
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL):
-            self._old = signal.signal(signal.SIGTERM, self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
-        return False
 
 
 def _checkpoint_if_due(interrupt, last_ck: float, every_s: float, save, bar) -> float:
