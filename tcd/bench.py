@@ -27,7 +27,7 @@ def _init(arch, precision):
 def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = CYLINDER_RADIUS,
                course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
                threads: int = 2, colouring: str = "auto", check_every: int = 1,
-               sweep_order: str = "symmetric"):
+               sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -39,7 +39,8 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
                      settings=SolverSettings(tolerance=tolerance, max_sweeps=max_sweeps,
                                              schedule=schedule, threads=threads,
                                              colouring=colouring, check_every=check_every,
-                                             sweep_order=sweep_order),
+                                             sweep_order=sweep_order,
+                                             warm_start_extrapolation=warm_start_extrapolation),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -147,15 +148,17 @@ def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
          tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
          colouring: str = "auto", check_every: int = 1, trace: str | None = None,
-         sweep_order: str = "symmetric") -> dict:
-    """`schedule`, `threads`, `sweep_order`: the solver's (SolverSettings); `threads` only
+         sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
+    """`schedule`, `threads`, `sweep_order`, `warm_start_extrapolation`: the solver's
+    (SolverSettings); `threads` only
     counts for the partitioned schedule. `trace`: a CSV path for one row per timed step (write_trace)."""
     _init(arch, precision)
     _check_steps(time)
     check_trace(trace)
     try:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
-                         colouring=colouring, check_every=check_every, sweep_order=sweep_order)
+                         colouring=colouring, check_every=check_every, sweep_order=sweep_order,
+                         warm_start_extrapolation=warm_start_extrapolation)
     except packing.ColumnTooTall as exc:
         raise ValueError(f"{exc}: the pour benchmark keeps the 150 mm mould; for more spheres "
                          f"use `tcd bench scaling --sizes {particles}`, whose cylinder widens "
@@ -171,7 +174,9 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "final_residual": float(residuals[-1]) if len(residuals) else 0.0,
         "tolerance": tolerance, "check_every": sim.settings.check_every, "arch": arch,
         "precision": precision, "schedule": sim.schedule, "colours": colours,
-        "sweep_order": sim.settings.sweep_order, "loop_wall_s": loop_s, "compile_wall_s": compile_s,
+        "sweep_order": sim.settings.sweep_order,
+        "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
+        "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
     if sim.schedule == "partitioned":
@@ -241,7 +246,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
           bond_blocks: bool = True, check_every: int = 1, trace: str | None = None,
-          sweep_order: str = "symmetric") -> dict:
+          sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -272,6 +277,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                          f'threads = {int(threads)}\ncolouring = "{colouring}"\n'
                          f'bond_blocks = {"true" if bond_blocks else "false"}\n'
                          f'check_every = {int(check_every)}\nsweep_order = "{sweep_order}"\n'
+                         f'warm_start_extrapolation = {float(warm_start_extrapolation)!r}\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
                          "<bench shear>")
     sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
@@ -296,6 +302,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "precision": precision, "schedule": sim.schedule, "colours": colours,
         "bond_solve": "blocks" if sim.settings.bond_blocks else "pairs",
         "sweep_order": sim.settings.sweep_order,
+        "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
         "contacts": int(sim.contact_arrays()["i"].size),
@@ -318,7 +325,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
             precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
             progress=None, schedule: str = "auto", threads: int = 2,
             colouring: str = "auto", settle: float = 0.3, check_every: int = 1,
-            sweep_order: str = "symmetric") -> dict:
+            sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after `settle` s of pouring
@@ -351,7 +358,8 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
     for n in sizes:
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
         sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads,
-                         colouring=colouring, check_every=check_every, sweep_order=sweep_order)
+                         colouring=colouring, check_every=check_every, sweep_order=sweep_order,
+                         warm_start_extrapolation=warm_start_extrapolation)
         t0 = time.perf_counter()
         for _ in range(int(round(settle / sim.settings.time_step))):
             sim.step()

@@ -106,6 +106,8 @@ class SolverConfig(_Model):
     `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
     "none"; sweep_order: "symmetric" (forward and backward sweeps alternate, the default) or
     "forward" (fewer sweeps on a shear; larger overlaps under a vibrating plate);
+    warm_start_extrapolation: c in [0, 1], each bond and lasting contact starts the step from
+    R_n + c (R_n - R_n-1) (0: from R_n, the default);
     alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);
     overlap_slop: overlap (fraction of the smallest diameter) below which the end-of-step
     position projection leaves contacts alone; projection_passes: its sweeps (0: off);
@@ -125,6 +127,7 @@ class SolverConfig(_Model):
     threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
     sweep_order: Literal["forward", "symmetric"] = "symmetric"
+    warm_start_extrapolation: float = Field(0.0, ge=0.0, le=1.0)
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
     overlap_slop: float = Field(0.002, ge=0)
@@ -148,6 +151,7 @@ class SolverConfig(_Model):
                               check_every=self.check_every, schedule=self.schedule,
                               threads=self.threads,
                               acceleration=self.acceleration, sweep_order=self.sweep_order,
+                              warm_start_extrapolation=self.warm_start_extrapolation,
                               alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,

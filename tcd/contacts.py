@@ -313,8 +313,11 @@ def contact_fill(p, wl, nb, bd, ct, alert: float, h: float) -> None:
 
 @ti.kernel
 def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float,
-                     theta: float, mu: float):
-    """Frame, gap at the predicted configuration, Delassus diagonal, friction, warm start."""
+                     theta: float, mu: float, extrap: float):
+    """Frame, gap at the predicted configuration, Delassus diagonal, friction, warm start:
+    the contact's impulse of the last step R_n, or with `extrap` = c > 0, where the contact also
+    carried an impulse the step before, R_n + c (R_n - R_n-1) (then the cone's normal half:
+    a negative normal impulse starts from zero; the first visit projects the rest)."""
     for k in range(ct.total[None]):
         i, j = ct.i[k], ct.j[k]
         ri = p.radius[i]
@@ -350,9 +353,14 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
         ct.wtt[k] = p.inv_mass[i] + im_j + ri * ri * p.inv_inertia[i] + rj * rj * ii_j
         ct.mu[k] = f
         r = ti.Vector([0.0, 0.0, 0.0])
+        r_old = ti.Vector([0.0, 0.0, 0.0])
         for q in range(ct.prev_start[i], ct.prev_start[i + 1]):
             if ct.prev_j[q] == j:
                 r = ct.prev_impulse[q]
+                r_old = ct.prev_old[q]
+        ct.impulse_old[k] = r
+        if extrap > 0.0 and r_old.dot(r_old) > 0.0:
+            r = r + extrap * (r - r_old)
         rn = r.dot(n)
         if rn < 0.0:
             r = ti.Vector([0.0, 0.0, 0.0])
@@ -364,6 +372,7 @@ def save_history(ct: ti.template(), n: ti.i32):
     for k in range(ct.total[None]):
         ct.prev_j[k] = ct.j[k]
         ct.prev_impulse[k] = ct.impulse[k]
+        ct.prev_old[k] = ct.impulse_old[k]
     for i in range(n + 1):
         ct.prev_start[i] = ct.start[i]
     ct.prev_total[None] = ct.total[None]

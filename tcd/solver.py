@@ -1028,11 +1028,16 @@ def warm_start_item(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: 
 @ti.kernel
 def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t_end: float,
                   mode: ti.i32, k_m: float, eta_m: float, k_k: float, eta_k: float,
-                  tangent_factor: float):
+                  tangent_factor: float, extrap: float):
     """Current frame; tangential displacement and history carried into the new tangent plane
-    (projected, length kept); extra compliance 1/(theta H^2 K) and displacement terms."""
+    (projected, length kept); extra compliance 1/(theta H^2 K) and displacement terms; the
+    warm start R_n + extrap (R_n - R_n-1) (extrap 0: the last step's impulse)."""
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
+            r_last = bd.impulse[b]
+            if extrap > 0.0:
+                bd.impulse[b] = r_last + extrap * (r_last - bd.impulse_prev[b])
+            bd.impulse_prev[b] = r_last
             i, j = bd.i[b], bd.j[b]
             ri, rj = p.radius[i], p.radius[j]
             d = p.x[j] - p.x[i]

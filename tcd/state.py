@@ -242,7 +242,9 @@ class Contacts:
     Per contact: i, j, normal n (i to j), gap g_beg at the predicted configuration (m),
     rhs = max(g_beg, 0) / (theta H) (m/s), wnn, wtt (Delassus diagonal, 1/kg), mu, impulse R
     (N s, global vector), colour. Per particle: count and start (CSR, `particle_capacity`).
-    The previous step's (j, R, start) are kept in prev_* for warm starting. The solver's
+    The previous step's (j, R, start) are kept in prev_* for warm starting, with prev_old:
+    each of those contacts' impulse the step before (impulse_old: the current contacts'
+    previous-step impulse; the extrapolated warm start reads both). The solver's
     fields (i, j, normal, impulse, rhs, wnn, wtt, mu) are one record per contact (AoS)."""
 
     def __init__(self, capacity: int, particle_capacity: int):
@@ -258,6 +260,7 @@ class Contacts:
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.count, self.start = _int(n), _int(n + 1)
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
+        self.impulse_old, self.prev_old = _vec(c), _vec(c)
         self.total = _scalar()
         self.prev_total = _scalar()
         # wall forces: partial sums per (wall, chunk of WALL_CHUNK contacts)
@@ -276,6 +279,7 @@ class Bonds:
 
     Model: i, j, g0 (gap at creation, m), created (time, s), area (pi min(r)^2, m^2).
     State: state (0 intact, 1 broken in tension, 2 broken in shear), impulse R (N s),
+    impulse_prev (R of the step before: the extrapolated warm start),
     d_t (tangential displacement, m, global vector in the tangent plane),
     Burgers history (normal: hd_n dashpot, hk_n Kelvin; tangential: hd_t, hk_t, m),
     broken_time (s, NaN while intact), broken_pos (m).
@@ -304,6 +308,8 @@ class Bonds:
         self.broken_time, self.broken_pos = _real(c), _vec(c)
         self.d_t_beg = _vec(c)
         self.acc_p, self.acc_d = _vec(c), _vec(c)
+        # the impulse of the step before the last (the extrapolated warm start)
+        self.impulse_prev = _vec(c)
         self.start = _int(particle_capacity + 1)
         # bonds whose second particle is p: rev[rev_start[p]:rev_start[p + 1]] (the bonds of
         # particle p are bonds start[p]..start[p+1] plus these: the particle-block relaxation)

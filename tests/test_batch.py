@@ -89,6 +89,29 @@ def test_split_gives_back_each_system(pair):
             np.testing.assert_array_equal(part[key], value, err_msg=key)
 
 
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
+def test_batch_carries_the_extrapolated_warm_start(backend):
+    """With warm_start_extrapolation the previous impulses of every bond and contact travel
+    into the batch and out of it: each system steps as alone, bit for bit."""
+    settings = SolverSettings(max_sweeps=300, schedule="serial", warm_start_extrapolation=0.5)
+    a = pour(1, settings=settings)
+    b = pour(2, radii=a.radii(), settings=settings)
+    for o in (a, b):
+        o.step(200)
+        assert o.create_bonds(2e-4) > 20
+        o.step(5)
+    batch = Simulation.batch([a, b])
+    for _ in range(25):
+        ra, rb = a.step(), b.step()
+        batch.step()
+        np.testing.assert_array_equal(batch.system_stats()[0], [ra.sweeps, rb.sweeps])
+    for o, part in zip((a, b), batch.split()):
+        mine = o.state_dict()
+        for key in ("particles/v", "bonds/impulse", "bonds/impulse_prev", "contacts/impulse",
+                    "contacts/impulse_old"):
+            np.testing.assert_array_equal(part[key], mine[key], err_msg=key)
+
+
 def test_superimposed_systems_never_touch(backend):
     """Two copies of one pour in the same place: every contact stays inside a system, each
     system's contact set is that of the pour alone (the brute-force pairs within the alert

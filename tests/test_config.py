@@ -32,6 +32,7 @@ alert_ratio = 0.2
 gravity = 9.8
 colouring = "rounds"
 sweep_order = "forward"
+warm_start_extrapolation = 0.5
 
 [material]
 density = 2500
@@ -201,6 +202,8 @@ def test_to_settings_and_to_law_carry_the_values():
         (1e-4, 0.75, 1e-5, 500, 5)
     assert (st.schedule, st.alert_ratio, st.colouring) == ("coloured", 0.2, "rounds")
     assert st.sweep_order == "forward"
+    assert st.warm_start_extrapolation == 0.5
+    assert parse_scenario(MINIMAL).solver.to_settings().warm_start_extrapolation == 0.0
     assert parse_scenario(MINIMAL).solver.to_settings().sweep_order == "symmetric"
     assert tuple(st.gravity) == (0.0, 0.0, -9.8)
     law = s.bond.to_law()
@@ -480,6 +483,15 @@ def test_unknown_sweep_order_is_refused(tmp_path):
     assert_names(err, "solver.sweep_order", "'forward'", "'symmetric'")
     with pytest.raises(ValueError, match="sweep_order must be one of .*'backward'"):
         SolverSettings(sweep_order="backward")
+
+
+@pytest.mark.parametrize("value", ["1.5", "-0.1"])
+def test_warm_start_extrapolation_outside_0_1_is_refused(tmp_path, value):
+    err = refusal(tmp_path, FULL.replace("warm_start_extrapolation = 0.5",
+                                         f"warm_start_extrapolation = {value}"))
+    assert_names(err, "solver.warm_start_extrapolation")
+    with pytest.raises(ValueError, match="warm_start_extrapolation"):
+        SolverSettings(warm_start_extrapolation=float(value))
 
 
 def test_a_jitter_too_wide_for_the_column_is_named(tmp_path):
