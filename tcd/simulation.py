@@ -500,8 +500,7 @@ class Simulation:
             sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
-                           1 if s.sweep_order == "symmetric" else 0,
-                           1 if s.acceleration == "nncg" else 0, 1 if s.bond_blocks else 0)
+                           *self._sweep_flags())
             colours = 0
         elif self.schedule == "partitioned":
             self._solve_partitioned()
@@ -530,6 +529,13 @@ class Simulation:
         self.last = StepRecord(self.time, int(self.stats.sweeps[None]), float(self.stats.residual[None]),
                                int(ct.total[None]), colours, self.bonds_intact_count())
 
+    def _sweep_flags(self) -> tuple[int, int, int]:
+        """The serial and partitioned sweeps' 0/1 kernel flags: symmetric order, NNCG, bond
+        blocks."""
+        s = self.settings
+        return (int(s.sweep_order == "symmetric"), int(s.acceleration == "nncg"),
+                int(bool(s.bond_blocks)))
+
     def _solve_partitioned(self) -> None:
         s = self.settings
         p, wl, ct, bd = self.particles, self.wall_fields, self.contacts, self.bonds
@@ -537,11 +543,10 @@ class Simulation:
         if self.partition is None or self.partition.capacity < need:
             release(self.partition)
             self.partition = acquire(Partition, need, p.capacity)
-        blocks = 1 if s.bond_blocks else 0
+        symmetric, accel, blocks = self._sweep_flags()
         pk.partition_items(p, ct, bd, self.partition, s.threads, blocks)
         pk.nlgs_partitioned(p, wl, ct, bd, self.stats, self.partition, s.threads, s.max_sweeps,
-                            s.tolerance, s.check_every, 1 if s.sweep_order == "symmetric" else 0,
-                            1 if s.acceleration == "nncg" else 0, blocks)
+                            s.tolerance, s.check_every, symmetric, accel, blocks)
 
     def _blocks(self) -> int:
         return 1 if self.settings.bond_blocks else 0
