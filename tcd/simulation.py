@@ -533,8 +533,7 @@ class Simulation:
         """The serial and partitioned sweeps' 0/1 kernel flags: symmetric order, NNCG, bond
         blocks."""
         s = self.settings
-        return (int(s.sweep_order == "symmetric"), int(s.acceleration == "nncg"),
-                int(bool(s.bond_blocks)))
+        return int(s.sweep_order == "symmetric"), int(s.acceleration == "nncg"), self._blocks()
 
     def _solve_partitioned(self) -> None:
         s = self.settings
@@ -755,11 +754,7 @@ class Simulation:
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
         for key, default in self._BOND_DEFAULTS.items():
             shape = (b, 3) if key in self._BOND_VECTORS else (b,)
-            if key == "impulse_prev" and key not in a and "impulse" in a:
-                # a state written before the extrapolated warm start: no extrapolation at first
-                arr = np.asarray(a["impulse"])
-            else:
-                arr = np.asarray(a[key]) if key in a else np.full(shape, default)
+            arr = np.asarray(a[key]) if key in a else np.full(shape, default)
             put(getattr(bd, key), arr[order].reshape(shape))
         start = np.zeros(self.n + 1, np.int32)
         np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
@@ -851,6 +846,9 @@ class Simulation:
         ct.total[None] = m
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
+        # likewise each bond's impulse the step before
+        if "impulse" in bonds:
+            bonds.setdefault("impulse_prev", bonds["impulse"])
         self._set_bond_arrays(bonds)
         # the wall forces of the last step: a servo plate reads them before the next step
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
