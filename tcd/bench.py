@@ -246,7 +246,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
           tolerance: float = 1e-4, seed: int = 1, sample: str | None = None, samples: int = 1,
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
           bond_blocks: bool = True, check_every: int = 1, trace: str | None = None,
-          sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
+          sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
+          renumber: bool = False) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
     simulated seconds (the full test is 3 s: 15000 steps). `sample`: a prepared sample
@@ -257,7 +258,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     simulation (Simulation.batch: the same fields, one step for all); the figure is then the
     wall time over (all particles x steps), and `per_sample` lists each system's sweeps and
     residual. Each sample starts its shear at the latest of their preparation clocks (a batch
-    has one clock)."""
+    has one clock). `renumber`: the stage's `renumber` (particles numbered along the shear
+    before bonding)."""
     from .config import parse_scenario
     from .runner import plan_shears
     from .simulation import Simulation
@@ -278,7 +280,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                          f'bond_blocks = {"true" if bond_blocks else "false"}\n'
                          f'check_every = {int(check_every)}\nsweep_order = "{sweep_order}"\n'
                          f'warm_start_extrapolation = {float(warm_start_extrapolation)!r}\n'
-                         f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n',
+                         f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n'
+                         f'renumber = {"true" if renumber else "false"}\n',
                          "<bench shear>")
     sims, phases = plan_shears(scn, scn.stages[0], seeds, paths)
     sim = sims[0] if samples == 1 else Simulation.batch(sims)
@@ -303,6 +306,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "bond_solve": "blocks" if sim.settings.bond_blocks else "pairs",
         "sweep_order": sim.settings.sweep_order,
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
+        "renumber": bool(renumber),
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
         "contacts": int(sim.contact_arrays()["i"].size),

@@ -8,7 +8,9 @@ opening `<stem>_particles.pvd` gives a time series:
   particles  one point per sphere (vertex cells). Point data: `radius` and `diameter` (m; scale a
              Glyph filter's spheres by `diameter` with scale factor 1 to draw the true sizes),
              `velocity` (m/s), `speed`, `angular_velocity` (rad/s), `layer`, `id` (the index
-             used by contacts and bonds), and `system` in a batch checkpoint (the samples of
+             used by contacts and bonds), `sample_index` when a shear renumbered the
+             particles (`renumber = true`: the particle's index in its prepared sample), and
+             `system` in a batch checkpoint (the samples of
              a batch overlap in space: threshold on it to see one).
   contacts   one line per particle-particle contact, between the two centres (the same points as
              the particles, so contact and particle files overlay). Cell data: `impulse` (N s,
@@ -204,6 +206,8 @@ def _mesh(frame, part, h):
                 "angular_velocity": np.asarray(frame.get("particles/w", np.zeros_like(x))),
                 "layer": np.asarray(frame.get("particles/layer", np.zeros(n, np.int32)), np.int32),
                 "id": np.arange(n, dtype=np.int64)}
+        if "particles/sample_index" in frame:    # a renumbered shear
+            data["sample_index"] = np.asarray(frame["particles/sample_index"], np.int32)
         if "particles/system" in frame:     # a batch checkpoint: samples side by side
             data["system"] = np.asarray(frame["particles/system"], np.int32)
         return meshio.Mesh(x, [("vertex", np.arange(n, dtype=np.int64)[:, None])],

@@ -31,6 +31,9 @@ of a states or series file has a ``units`` attribute (SI: "m", "m/s", "rad/s", "
     particles/w               (N,3)   rad/s    angular velocities
     particles/radius          (N,)    m        radii
     particles/layer           (N,)    1        int32, compaction layer the particle was poured in
+    particles/sample_index    (N,)    1        int32, the particle's index in its sample, present
+                                               when a stage renumbered the particles (a shear
+                                               with ``renumber = true``); absent: the index
     walls/kind                (W,)    1        int32, 0 plane, 1 cylinder shell
     walls/point               (W,3)   m        point on the plane / on the cylinder axis
     walls/direction           (W,3)   1        unit normal into the sample / unit cylinder axis
@@ -103,6 +106,7 @@ FRAME_SCHEMA = {
     "particles/w": ("rad/s", None, (3,)),
     "particles/radius": ("m", None, ()),
     "particles/layer": ("1", np.int32, ()),
+    "particles/sample_index": ("1", np.int32, ()),
     "walls/kind": ("1", np.int32, ()),
     "walls/point": ("m", None, (3,)),
     "walls/direction": ("1", None, (3,)),

@@ -314,6 +314,10 @@ class Shear:
             plane((0, 0, H), (0, 0, -1), radius=R, friction=f, motion="constant", velocity=v,
                   start=t, name="top plate"),
         ]
+        if c.renumber:
+            # along the shear: neighbours close in memory, slabs of contiguous particles
+            old, sim = sim, sim.renumber(np.argsort(x[:, 0], kind="stable"))
+            old.close()
         bond_law = self.scn.bond.to_law(c.bond_mode)
         sim.bond_law = bond_law
         sim.set_walls(walls)

@@ -42,6 +42,8 @@ def frame_of(sim) -> dict:
     d = sim.state_dict()
     f = {k: d[k] for k in FRAME_KEYS}
     f["bonds/broken_position"] = d["bonds/broken_pos"]
+    if "particles/sample_index" in d:       # a renumbered shear: each particle's sample index
+        f["particles/sample_index"] = d["particles/sample_index"]
     return f
 
 

@@ -267,7 +267,7 @@ class Simulation:
                  layer=None, velocity=None, fixed=None, friction: float = 0.7,
                  settings: SolverSettings = SolverSettings(), bond_law: BondLaw = BondLaw(),
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
-                 time: float = 0.0, system=None):
+                 time: float = 0.0, system=None, sample_index=None):
         backend._require()
         radius = np.asarray(radius, dtype=float).reshape(-1)
         position = np.asarray(position, dtype=float).reshape(-1, 3)
@@ -343,6 +343,9 @@ class Simulation:
         put(p.system, system.astype(np.int32))
         self.system_start = np.searchsorted(system, np.arange(self.systems + 1)).astype(np.int32)
         put(p.sys_start, self.system_start)
+        self.sample_index = self._identity_index()
+        if sample_index is not None:
+            self._set_sample_index(sample_index)
         p.systems[None] = self.systems
 
         self.wall_fields = acquire(WallFields, MAX_WALLS)
@@ -773,6 +776,87 @@ class Simulation:
         return int(self.bonds.total[None]) - int(self.bonds.broken[None])
 
     # ---------------------------------------------------------------- state in / out
+    # ---------------------------------------------------------------- particle numbering
+    def _identity_index(self) -> np.ndarray:
+        """Each particle's index within its own system: the sample_index of a simulation whose
+        particles were never renumbered."""
+        n = self.n
+        system = np.repeat(np.arange(self.systems), np.diff(self.system_start))
+        return (np.arange(n) - self.system_start[system]).astype(np.int32)
+
+    def _set_sample_index(self, index) -> None:
+        index = np.asarray(index).reshape(-1)
+        if index.shape != (self.n,) or not np.issubdtype(index.dtype, np.integer):
+            raise ValueError(f"sample_index must be {self.n} integers, got shape {index.shape}, "
+                             f"dtype {index.dtype}")
+        for s in range(self.systems):
+            part = index[self.system_start[s]:self.system_start[s + 1]]
+            if not np.array_equal(np.sort(part), np.arange(len(part))):
+                raise ValueError(f"sample_index of system {s} is not a permutation of 0..{len(part) - 1}")
+        self.sample_index = index.astype(np.int32)
+
+    @property
+    def renumbered(self) -> bool:
+        """True when some particle's index differs from its sample_index."""
+        return not np.array_equal(self.sample_index, self._identity_index())
+
+    def renumber(self, order) -> "Simulation":
+        """A new simulation holding this one's state with the particles renumbered: new
+        particle k is old particle order[k] (its contacts, their impulse histories and the
+        walls' forces follow it; contacts are listed again in canonical order). Each particle
+        keeps the index it had in the sample as `sample_index` (state files:
+        particles/sample_index), so that a renumbered run can be traced back to its sample.
+
+        Why: the Gauss-Seidel reads each body's neighbours; numbered along an axis, neighbours
+        lie close in memory, and the partitioned schedule's slabs (cut across that axis) own
+        contiguous ranges of particles, so its threads do not write the same cache lines.
+        The visiting order changes, so the numbers change at the level of the solver's
+        tolerance. One system only, before bonds are created (bond records are directed
+        from i to j). This simulation is left as it was; close it when done."""
+        if self.systems > 1:
+            raise ValueError("renumber works on one system; renumber each before batching")
+        if int(self.bonds.total[None]) > 0:
+            raise ValueError("renumber before creating bonds (this simulation has "
+                             f"{int(self.bonds.total[None])})")
+        n = self.n
+        order = np.asarray(order).reshape(-1)
+        if order.shape != (n,) or not np.issubdtype(order.dtype, np.integer) or \
+                not np.array_equal(np.sort(order), np.arange(n)):
+            raise ValueError(f"order must be a permutation of 0..{n - 1}")
+        d = self.state_dict()
+        new_of = np.empty(n, np.int64)
+        new_of[order] = np.arange(n)
+        e = {k: v[order] for k, v in d.items() if k.startswith("particles/")}
+        e["particles/sample_index"] = self.sample_index[order].copy()
+        ci = new_of[d["contacts/i"]]
+        cj = d["contacts/j"].astype(np.int64)
+        body = cj < n
+        cj = np.where(body, new_of[np.minimum(cj, n - 1)], cj)
+        # a contact is listed under its lower particle, its impulse acting on the other one
+        swap = body & (cj < ci)
+        first, second = np.where(swap, cj, ci), np.where(swap, ci, cj)
+        sign = np.where(swap, -1.0, 1.0)[:, None]
+        o = np.lexsort((second, first))
+        e["contacts/i"] = first[o].astype(np.int32)
+        e["contacts/j"] = second[o].astype(np.int32)
+        for key in ("impulse", "impulse_old"):
+            e["contacts/" + key] = (d["contacts/" + key] * sign)[o].astype(d["contacts/" + key].dtype)
+        e["contacts/gap"] = d["contacts/gap"][o]
+        e["contacts/start"] = np.searchsorted(e["contacts/i"], np.arange(n + 1)).astype(np.int32)
+        for k, v in d.items():
+            if k.startswith(("walls/", "bonds/")):
+                e[k] = v
+        # (masses, inertias and the state come with load_state_dict)
+        new = type(self)(e["particles/radius"], e["particles/x"], walls=self.walls,
+                         density=self.density, layer=e["particles/layer"],
+                         friction=self.friction, settings=self.settings, bond_law=self.bond_law,
+                         domain=self.domain, cell_size=self.cell_size, time=self.time,
+                         contact_capacity=self.contacts.capacity,
+                         sample_index=e["particles/sample_index"])
+        new.load_state_dict(e)
+        new.step_index = self.step_index
+        return new
+
     def state_dict(self) -> dict:
         """Everything needed to continue the run bit-exactly, as NumPy arrays (HDF5 layout)."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
@@ -781,6 +865,8 @@ class Simulation:
              for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
         if self.systems > 1:
             d["particles/system"] = get(p.system, n)
+        if self.renumbered:
+            d["particles/sample_index"] = self.sample_index.copy()
         d.update({
             "contacts/i": get(ct.i, m), "contacts/j": get(ct.j, m),
             "contacts/impulse": get(ct.impulse, m), "contacts/gap": get(ct.gap, m),
@@ -825,6 +911,7 @@ class Simulation:
                              "another sample): build the Simulation with the state's radii")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
+        self._set_sample_index(d.get("particles/sample_index", self._identity_index()))
         self._neighbours_valid = False
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
@@ -890,6 +977,7 @@ class Simulation:
             for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
                 parts.setdefault(key, []).append(d["particles/" + key])
             parts.setdefault("system", []).append(np.full(o.n, k, np.int32))
+            parts.setdefault("sample_index", []).append(o.sample_index)
             j = d["contacts/j"]
             contacts["i"].append(d["contacts/i"] + p_off)
             contacts["j"].append(np.where(j < o.n, j + p_off, n_tot + w_off + (j - o.n)).astype(np.int32))
@@ -916,6 +1004,7 @@ class Simulation:
                     settings=ref.settings, bond_law=ref.bond_law, domain=(lo, hi),
                     cell_size=min(o.cell_size for o in sims), time=ref.time,
                     system=merged["particles/system"],
+                    sample_index=merged["particles/sample_index"],
                     contact_capacity=max(64, int(1.25 * c_off) + 64))
         batch.load_state_dict(merged)
         batch.step_index = ref.step_index
@@ -956,6 +1045,8 @@ class Simulation:
             wall_pos[wk] = np.arange(len(wk))
             e = {"particles/" + k: d["particles/" + k][sl]
                  for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
+            if not np.array_equal(self.sample_index[sl], np.arange(n_s)):
+                e["particles/sample_index"] = self.sample_index[sl].copy()
             e["contacts/i"] = ci[c0:c1] - sl.start
             e["contacts/j"] = np.where(j < self.n, j - sl.start,
                                        n_s + wall_pos[np.maximum(j - self.n, 0)]).astype(j.dtype)

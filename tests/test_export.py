@@ -140,12 +140,15 @@ def test_a_prepared_sample_or_checkpoint_exports_its_one_state(tmp_path):
     arrays["particles/inv_mass"] = np.ones(4)
     arrays["contacts/start"] = np.array([0, 1, 2, 3, 3], np.int32)
     arrays["particles/system"] = np.array([0, 0, 1, 1], np.int32)     # a batch
+    arrays["particles/sample_index"] = np.array([1, 0, 0, 1], np.int32)  # renumbered
     path = tmp_path / "prepared.h5"
     io.save_checkpoint(path, arrays, {"time": 2.5, "walls": []})
     written = export.export(path, tmp_path / "vtk", parts=["particles", "contacts"])
     m = meshio.read(tmp_path / "vtk" / "prepared_particles_000000.vtu")
     np.testing.assert_array_equal(m.points, f["particles/x"])
     np.testing.assert_array_equal(m.point_data["system"], [0, 0, 1, 1])
+    np.testing.assert_array_equal(m.point_data["sample_index"], [1, 0, 0, 1])
+    np.testing.assert_array_equal(m.point_data["id"], np.arange(4))
     root = ET.parse(written[-2]).getroot()
     assert [float(d.get("timestep")) for d in root.iter("DataSet")] == [2.5]
     with pytest.raises(ValueError, match="one state"):
