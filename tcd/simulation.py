@@ -775,7 +775,6 @@ class Simulation:
     def bonds_intact_count(self) -> int:
         return int(self.bonds.total[None]) - int(self.bonds.broken[None])
 
-    # ---------------------------------------------------------------- state in / out
     # ---------------------------------------------------------------- particle numbering
     def _identity_index(self) -> np.ndarray:
         """Each particle's index within its own system: the sample_index of a simulation whose
@@ -857,6 +856,7 @@ class Simulation:
         new.step_index = self.step_index
         return new
 
+    # ---------------------------------------------------------------- state in / out
     def state_dict(self) -> dict:
         """Everything needed to continue the run bit-exactly, as NumPy arrays (HDF5 layout)."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
