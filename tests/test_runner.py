@@ -246,6 +246,25 @@ def test_sigterm_to_a_parallel_run_is_passed_on_to_its_workers(tmp_path):
             worker.kill()
 
 
+def _interrupt_after(checks: int):
+    """A runner.DeferredInterrupt whose interrupt is pending from its (checks + 1)-th check
+    on: the run stops there as after a Ctrl-C, at the end of a step."""
+    from tcd import runner
+
+    class StopAfter(runner.DeferredInterrupt):
+        seen = 0
+
+        @property
+        def pending(self):
+            StopAfter.seen += 1
+            return StopAfter.seen > checks
+
+        @pending.setter
+        def pending(self, value):
+            pass
+    return StopAfter
+
+
 def _shear_only(prepared, seeds="[3]"):
     # the serial schedule on every backend: a batch gives each sample's numbers bit for bit
     # there (the coloured schedule, the GPU's default, colours and converges the batch as one)
@@ -286,19 +305,7 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     final = io.read_frame(tmp_path / "one" / "sample_3" / "states.h5", -1)
     assert np.array_equal(frames["particles/x"], final["particles/x"])
 
-    class StopAfter(runner.DeferredInterrupt):
-        checks = 0
-
-        @property
-        def pending(self):
-            StopAfter.checks += 1
-            return StopAfter.checks > 15
-
-        @pending.setter
-        def pending(self, value):
-            pass
-
-    monkeypatch.setattr(runner, "DeferredInterrupt", StopAfter)
+    monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(15))
     with pytest.raises(KeyboardInterrupt):
         runner.run_batch(load_scenario(str(pair)), tmp_path / "cut", progress=False)
     assert (tmp_path / "cut" / "batch_checkpoint.h5").exists()
@@ -354,19 +361,7 @@ def test_renumbered_shear_traces_its_particles_and_resumes_bit_for_bit(micro_run
     np.testing.assert_allclose(two["shear_stress"][early], one["shear_stress"][early], atol=0.05 * peak)
 
     # interrupted mid-shear, then resumed: the same end as the uninterrupted renumbered run
-    class StopAfter(runner.DeferredInterrupt):
-        checks = 0
-
-        @property
-        def pending(self):
-            StopAfter.checks += 1
-            return StopAfter.checks > 20
-
-        @pending.setter
-        def pending(self, value):
-            pass
-
-    monkeypatch.setattr(runner, "DeferredInterrupt", StopAfter)
+    monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(20))
     with pytest.raises(KeyboardInterrupt):
         runner.run_sample(load_scenario(str(renum)), 3, tmp_path / "cut" / "sample_3",
                           resume=False, progress=False)
