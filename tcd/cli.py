@@ -509,8 +509,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 "together (blocks, the default) or bond by bond (pairs)")
             b.add_argument("--renumber", action="store_true",
                            help="number the particles along the shear before bonding (the "
-                                "stage's renumber = true): faster sweeps, most of all with "
-                                "--schedule partitioned")
+                                "stage's renumber = true): cheaper steps with --schedule "
+                                "partitioned; another visiting order, so other sweep counts")
         b.set_defaults(handler=cmd_bench)
     b = bench_sub.add_parser("scaling", help="cost per particle step against particle count")
     b.add_argument("--sizes", default="1000,3000,10000,30000,100000", metavar="N,N,...")

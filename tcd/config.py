@@ -361,9 +361,9 @@ class ShearStage(_Model):
     by each sample's seed, so a study can shear a set of prepared samples. `tolerance` and
     `max_sweeps`: the solver's during this stage (default: those of `[solver]`); a bonded
     sample needs a tighter tolerance than a pour (README, "Convergence"). `renumber`: number
-    the particles along the shear (x) before bonding (`Simulation.renumber`): faster sweeps,
-    most of all on the partitioned schedule, and numbers that differ at the level of the
-    solver's tolerance; each particle's index in the sample is kept (particles/sample_index)."""
+    the particles along the shear (x) before bonding (`Simulation.renumber`): cheaper steps on
+    the partitioned schedule (on one thread it depends on the sweep order: README,
+    "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index)."""
     kind: Literal["shear"]
     displacement_mm: float = Field(2.5, gt=0)
     velocity_mm_per_min: float = Field(50.0, gt=0)

@@ -103,6 +103,12 @@ def _finite(name: str, value, *, low=None, positive=False) -> None:
         raise ValueError(f"{name} must be {need}, got {value!r}")
 
 
+def _check_permutation(name: str, a: np.ndarray) -> None:
+    """Refuse integers `a` that are not a permutation of 0..len(a)-1."""
+    if not np.array_equal(np.sort(a), np.arange(len(a))):
+        raise ValueError(f"{name} is not a permutation of 0..{len(a) - 1}")
+
+
 def _integer(name: str, value, low: int, high: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
         raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
@@ -267,7 +273,7 @@ class Simulation:
                  layer=None, velocity=None, fixed=None, friction: float = 0.7,
                  settings: SolverSettings = SolverSettings(), bond_law: BondLaw = BondLaw(),
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
-                 time: float = 0.0, system=None, sample_index=None):
+                 time: float = 0.0, system=None):
         backend._require()
         radius = np.asarray(radius, dtype=float).reshape(-1)
         position = np.asarray(position, dtype=float).reshape(-1, 3)
@@ -343,9 +349,8 @@ class Simulation:
         put(p.system, system.astype(np.int32))
         self.system_start = np.searchsorted(system, np.arange(self.systems + 1)).astype(np.int32)
         put(p.sys_start, self.system_start)
+        # each particle's index in its sample (load_state_dict sets a renumbered state's)
         self.sample_index = self._identity_index()
-        if sample_index is not None:
-            self._set_sample_index(sample_index)
         p.systems[None] = self.systems
 
         self.wall_fields = acquire(WallFields, MAX_WALLS)
@@ -789,9 +794,8 @@ class Simulation:
             raise ValueError(f"sample_index must be {self.n} integers, got shape {index.shape}, "
                              f"dtype {index.dtype}")
         for s in range(self.systems):
-            part = index[self.system_start[s]:self.system_start[s + 1]]
-            if not np.array_equal(np.sort(part), np.arange(len(part))):
-                raise ValueError(f"sample_index of system {s} is not a permutation of 0..{len(part) - 1}")
+            _check_permutation(f"sample_index of system {s}",
+                               index[self.system_start[s]:self.system_start[s + 1]])
         self.sample_index = index.astype(np.int32)
 
     @property
@@ -819,9 +823,9 @@ class Simulation:
                              f"{int(self.bonds.total[None])})")
         n = self.n
         order = np.asarray(order).reshape(-1)
-        if order.shape != (n,) or not np.issubdtype(order.dtype, np.integer) or \
-                not np.array_equal(np.sort(order), np.arange(n)):
+        if not np.issubdtype(order.dtype, np.integer) or order.shape != (n,):
             raise ValueError(f"order must be a permutation of 0..{n - 1}")
+        _check_permutation("order", order)
         d = self.state_dict()
         new_of = np.empty(n, np.int64)
         new_of[order] = np.arange(n)
@@ -845,13 +849,12 @@ class Simulation:
         for k, v in d.items():
             if k.startswith(("walls/", "bonds/")):
                 e[k] = v
-        # (masses, inertias and the state come with load_state_dict)
+        # (masses, inertias, sample_index and the state come with load_state_dict)
         new = type(self)(e["particles/radius"], e["particles/x"], walls=self.walls,
                          density=self.density, layer=e["particles/layer"],
                          friction=self.friction, settings=self.settings, bond_law=self.bond_law,
                          domain=self.domain, cell_size=self.cell_size, time=self.time,
-                         contact_capacity=self.contacts.capacity,
-                         sample_index=e["particles/sample_index"])
+                         contact_capacity=self.contacts.capacity)
         new.load_state_dict(e)
         new.step_index = self.step_index
         return new
@@ -1004,7 +1007,6 @@ class Simulation:
                     settings=ref.settings, bond_law=ref.bond_law, domain=(lo, hi),
                     cell_size=min(o.cell_size for o in sims), time=ref.time,
                     system=merged["particles/system"],
-                    sample_index=merged["particles/sample_index"],
                     contact_capacity=max(64, int(1.25 * c_off) + 64))
         batch.load_state_dict(merged)
         batch.step_index = ref.step_index
