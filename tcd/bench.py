@@ -27,7 +27,8 @@ def _init(arch, precision):
 def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = CYLINDER_RADIUS,
                course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
                threads: int = 2, colouring: str = "auto", check_every: int = 1,
-               sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0):
+               sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
+               convergence: str = "impulse"):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -40,7 +41,8 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
                                              schedule=schedule, threads=threads,
                                              colouring=colouring, check_every=check_every,
                                              sweep_order=sweep_order,
-                                             warm_start_extrapolation=warm_start_extrapolation),
+                                             warm_start_extrapolation=warm_start_extrapolation,
+                                             convergence=convergence),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -148,8 +150,9 @@ def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
 def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision: str = "f64",
          tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
          colouring: str = "auto", check_every: int = 1, trace: str | None = None,
-         sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
-    """`schedule`, `threads`, `sweep_order`, `warm_start_extrapolation`: the solver's
+         sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
+         convergence: str = "impulse") -> dict:
+    """`schedule`, `threads`, `sweep_order`, `warm_start_extrapolation`, `convergence`: the solver's
     (SolverSettings); `threads` only
     counts for the partitioned schedule. `trace`: a CSV path for one row per timed step (write_trace)."""
     _init(arch, precision)
@@ -158,7 +161,8 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     try:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every, sweep_order=sweep_order,
-                         warm_start_extrapolation=warm_start_extrapolation)
+                         warm_start_extrapolation=warm_start_extrapolation,
+                         convergence=convergence)
     except packing.ColumnTooTall as exc:
         raise ValueError(f"{exc}: the pour benchmark keeps the 150 mm mould; for more spheres "
                          f"use `tcd bench scaling --sizes {particles}`, whose cylinder widens "
@@ -176,6 +180,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "precision": precision, "schedule": sim.schedule, "colours": colours,
         "sweep_order": sim.settings.sweep_order,
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
+        "convergence": sim.settings.convergence,
         "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
@@ -247,6 +252,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
           bond_blocks: bool = True, check_every: int = 1, trace: str | None = None,
           sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
+          convergence: str = "impulse",
           renumber: bool = False) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
@@ -280,6 +286,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                          f'bond_blocks = {"true" if bond_blocks else "false"}\n'
                          f'check_every = {int(check_every)}\nsweep_order = "{sweep_order}"\n'
                          f'warm_start_extrapolation = {float(warm_start_extrapolation)!r}\n'
+                         f'convergence = "{convergence}"\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n'
                          f'renumber = {"true" if renumber else "false"}\n',
                          "<bench shear>")
@@ -306,6 +313,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "bond_solve": "blocks" if sim.settings.bond_blocks else "pairs",
         "sweep_order": sim.settings.sweep_order,
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
+        "convergence": sim.settings.convergence,
         "renumber": bool(renumber),
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
@@ -329,7 +337,8 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
             precision: str = "f64", tolerance: float = 1e-4, out: str = "renders/scaling",
             progress=None, schedule: str = "auto", threads: int = 2,
             colouring: str = "auto", settle: float = 0.3, check_every: int = 1,
-            sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0) -> dict:
+            sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
+            convergence: str = "impulse") -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after `settle` s of pouring
@@ -363,7 +372,8 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         radius = CYLINDER_RADIUS * math.sqrt(max(n, 1) / 2600.0)
         sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every, sweep_order=sweep_order,
-                         warm_start_extrapolation=warm_start_extrapolation)
+                         warm_start_extrapolation=warm_start_extrapolation,
+                         convergence=convergence)
         t0 = time.perf_counter()
         for _ in range(int(round(settle / sim.settings.time_step))):
             sim.step()

@@ -295,7 +295,8 @@ def _run_bench(args) -> dict:
                      settle=args.settle, check_every=args.check_every,
                      **({"sweep_order": args.sweep_order} if args.sweep_order != "symmetric" else {}),
                      **({"warm_start_extrapolation": args.warm_start_extrapolation}
-                        if args.warm_start_extrapolation else {}))
+                        if args.warm_start_extrapolation else {}),
+                     **({"convergence": args.convergence} if args.convergence != "impulse" else {}))
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
@@ -311,6 +312,8 @@ def _run_bench(args) -> dict:
             options["sweep_order"] = args.sweep_order
         if args.warm_start_extrapolation:
             options["warm_start_extrapolation"] = args.warm_start_extrapolation
+        if args.convergence != "impulse":
+            options["convergence"] = args.convergence
         if getattr(args, "sample", None):
             for k in range(getattr(args, "samples", 1)):
                 try:
@@ -543,6 +546,10 @@ def _schedule_options(parser) -> None:
     parser.add_argument("--colouring", choices=("auto", "greedy", "rounds"), default="auto",
                         help="colouring of the coloured schedule: greedy (serial), rounds "
                         "(parallel); default greedy on the CPU, rounds on the GPU")
+    parser.add_argument("--convergence", choices=("impulse", "quad"), default="impulse",
+                        help="convergence measure: the relative impulse change of a sweep "
+                        "(default) or LMGC90's 'Quad ' check (QuadDV, QuadDVR, MeanDVoR all "
+                        "below --tolerance)")
     parser.add_argument("--check-every", type=_positive_int, default=1, metavar="K",
                         help="sweeps between convergence checks (default 1; on a GPU each check "
                         "waits for the device)")

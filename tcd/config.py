@@ -100,8 +100,11 @@ class BackendConfig(_Model):
 
 class SolverConfig(_Model):
     """Moreau-Jean / NLGS settings. time_step H (s); theta in [0.5, 1]; tolerance on the
-    relative impulse change per sweep; max_sweeps per step; check_every: sweeps between
-    convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
+    convergence measure; convergence: "impulse" (the relative impulse change of a sweep, sum
+    |dR| / sum |R|, the default) or "quad" (LMGC90's 'Quad ' check: a pass that updates
+    nothing, measuring the velocity corrections the local solves would still make; its
+    QuadDV, QuadDVR and |MeanDVoR| must all be below the tolerance; LMGC90's scripts often use
+    1.666e-4); max_sweeps per step; check_every: sweeps between convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
     "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
     `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
     "none"; sweep_order: "symmetric" (forward and backward sweeps alternate, the default) or
@@ -123,6 +126,7 @@ class SolverConfig(_Model):
     tolerance: float = Field(1e-4, gt=0)
     max_sweeps: int = Field(1000, ge=1, le=10**7)
     check_every: int = Field(1, ge=1, le=10**7)
+    convergence: Literal["impulse", "quad"] = "impulse"
     schedule: Literal["auto", "serial", "partitioned", "coloured"] = "auto"
     threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
@@ -148,7 +152,8 @@ class SolverConfig(_Model):
         from .simulation import SolverSettings
         return SolverSettings(time_step=self.time_step, theta=self.theta,
                               tolerance=self.tolerance, max_sweeps=self.max_sweeps,
-                              check_every=self.check_every, schedule=self.schedule,
+                              check_every=self.check_every, convergence=self.convergence,
+                              schedule=self.schedule,
                               threads=self.threads,
                               acceleration=self.acceleration, sweep_order=self.sweep_order,
                               warm_start_extrapolation=self.warm_start_extrapolation,

@@ -310,12 +310,13 @@ def bond_changes(bd: ti.template(), pt: ti.template(), k, parts):
 
 
 @ti.func
-def close_sweep(p: ti.template(), ct: ti.template(), bd: ti.template(), st: ti.template(),
-                pt: ti.template(), s, parts, max_sweeps, tol, check_every,
-                accel: ti.template()):
-    """After the last bookkeeping unit of sweep s, on one thread: the convergence test; then
-    either the end (pt.stop) or the momentum of the boundary bonds (then their snapshot) and
-    contacts and the release of sweep s + 1."""
+def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                st: ti.template(), pt: ti.template(), s, parts, max_sweeps, tol, check_every,
+                accel: ti.template(), quad: ti.template()):
+    """After the last bookkeeping unit of sweep s, on one thread: the convergence test (with
+    `quad`, LMGC90's 'Quad ' check over all items on this thread: solver.quad_check_range);
+    then either the end (pt.stop) or the momentum of the boundary bonds (then their snapshot)
+    and contacts and the release of sweep s + 1."""
     sweeps = s + 1
     measure = 0
     if sweeps % check_every == 0 or sweeps >= max_sweeps:
@@ -334,7 +335,9 @@ def close_sweep(p: ti.template(), ct: ti.template(), bd: ti.template(), st: ti.t
     done = 0
     if measure == 1:
         residual = 0.0
-        if rsum > 0.0:
+        if ti.static(quad == 1):
+            residual = sk.quad_check_range(p, wl, ct, bd, 0, bd.total[None], 0, ct.total[None])
+        elif rsum > 0.0:
             residual = dsum / rsum
         pt.residual[None] = residual
         if residual <= tol or sweeps >= max_sweeps:
@@ -358,10 +361,10 @@ def close_sweep(p: ti.template(), ct: ti.template(), bd: ti.template(), st: ti.t
 def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                      st: ti.template(), pt: ti.template(), parts: ti.i32, max_sweeps: ti.i32,
                      tol: float, check_every: ti.i32, symmetric: ti.i32,
-                     accel: ti.template(), blocks: ti.template()):
+                     accel: ti.template(), blocks: ti.template(), quad: ti.template()):
     """All sweeps of one step (see the module docstring); the items must have been listed by
-    `partition_items` for the same `parts` and `blocks`. `symmetric`, `accel` and `blocks` as
-    in solver.nlgs_serial."""
+    `partition_items` for the same `parts` and `blocks`. `symmetric`, `accel`, `blocks` and
+    `quad` as in solver.nlgs_serial."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         pt.claim[None] = 0
@@ -393,8 +396,9 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
                     if s > 0:
                         open_unit(p, ct, bd, pt, k, accel)
                     measure = 0
-                    if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
-                        measure = 1
+                    if ti.static(quad == 0):
+                        if (s + 1) % check_every == 0 or s + 1 >= max_sweeps:
+                            measure = 1
                     sweep_list(p, wl, ct, bd, pt, k, (s % 2) * symmetric, measure, accel,
                               blocks)
                     if ti.atomic_add(pt.finished[None], 1) == ph * parts + parts - 1:
@@ -405,5 +409,5 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
                 else:
                     bond_changes(bd, pt, k, parts)
                     if ti.atomic_add(pt.finished[None], 1) == ph * parts + parts - 1:
-                        close_sweep(p, ct, bd, st, pt, s, parts, max_sweeps, tol, check_every,
-                                    accel)
+                        close_sweep(p, wl, ct, bd, st, pt, s, parts, max_sweeps, tol,
+                                    check_every, accel, quad)

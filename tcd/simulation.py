@@ -28,6 +28,7 @@ from .walls import KINDS, Wall
 SCHEDULES = ("auto", "serial", "partitioned", "coloured")
 ACCELERATIONS = ("nncg", "none")
 SWEEP_ORDERS = ("forward", "symmetric")
+CONVERGENCE_MEASURES = ("impulse", "quad")
 COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
 # what load_state_dict needs of a state (state_dict writes these and more)
@@ -120,8 +121,13 @@ class CapacityError(RuntimeError):
 
 @dataclasses.dataclass(frozen=True)
 class SolverSettings:
-    """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the relative
-    impulse change per sweep; max_sweeps; check_every (sweeps between convergence checks);
+    """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the
+    convergence measure; convergence: the measure, "impulse" (the relative impulse change of
+    a sweep, sum |dR| / sum |R|: PHYSICS.md section 6, the default and the measure of every
+    shipped result) or "quad" (LMGC90's 'Quad ' check: a pass that updates nothing and
+    measures the velocity corrections the local solves would still make, relative to those of
+    the impulses; the largest of its QuadDV, QuadDVR and |MeanDVoR|: tcd/solver.py);
+    max_sweeps; check_every (sweeps between convergence checks);
     schedule: "serial", "partitioned" (the serial sweep split over `threads` CPU threads:
     tcd/partitioned.py; its numbers depend on `threads`), "coloured" or "auto" (serial on CPU,
     coloured on GPU); threads: parts of the partitioned schedule; acceleration:
@@ -153,6 +159,7 @@ class SolverSettings:
     tolerance: float = 1e-4
     max_sweeps: int = 1000
     check_every: int = 1
+    convergence: str = "impulse"
     schedule: str = "auto"
     threads: int = 2
     acceleration: str = "nncg"
@@ -198,6 +205,9 @@ class SolverSettings:
         if self.sweep_order not in SWEEP_ORDERS:
             raise ValueError(f"sweep_order must be one of {SWEEP_ORDERS}, got "
                              f"{self.sweep_order!r}")
+        if self.convergence not in CONVERGENCE_MEASURES:
+            raise ValueError(f"convergence must be one of {CONVERGENCE_MEASURES}, got "
+                             f"{self.convergence!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -537,11 +547,12 @@ class Simulation:
         self.last = StepRecord(self.time, int(self.stats.sweeps[None]), float(self.stats.residual[None]),
                                int(ct.total[None]), colours, self.bonds_intact_count())
 
-    def _sweep_flags(self) -> tuple[int, int, int]:
+    def _sweep_flags(self) -> tuple[int, int, int, int]:
         """The serial and partitioned sweeps' 0/1 kernel flags: symmetric order, NNCG, bond
-        blocks."""
+        blocks, 'Quad ' convergence check."""
         s = self.settings
-        return int(s.sweep_order == "symmetric"), int(s.acceleration == "nncg"), self._blocks()
+        return (int(s.sweep_order == "symmetric"), int(s.acceleration == "nncg"), self._blocks(),
+                int(s.convergence == "quad"))
 
     def _solve_partitioned(self) -> None:
         s = self.settings
@@ -550,13 +561,26 @@ class Simulation:
         if self.partition is None or self.partition.capacity < need:
             release(self.partition)
             self.partition = acquire(Partition, need, p.capacity)
-        symmetric, accel, blocks = self._sweep_flags()
+        symmetric, accel, blocks, quad = self._sweep_flags()
         pk.partition_items(p, ct, bd, self.partition, s.threads, blocks)
         pk.nlgs_partitioned(p, wl, ct, bd, self.stats, self.partition, s.threads, s.max_sweeps,
-                            s.tolerance, s.check_every, symmetric, accel, blocks)
+                            s.tolerance, s.check_every, symmetric, accel, blocks, quad)
 
     def _blocks(self) -> int:
         return 1 if self.settings.bond_blocks else 0
+
+    def quad_norms(self) -> dict:
+        """LMGC90's 'Quad ' convergence norms of the last step's impulses at the current
+        velocities (all systems together; bonds and contacts as the step left them): QuadDV,
+        QuadDVR, MeanDVoR and the largest of their absolute values, `residual`, which the step
+        compared with the tolerance when `convergence = "quad"` (tcd/solver.py, quad_terms).
+        Zeros when nothing carries an impulse."""
+        sk.quad_norms(self.particles, self.wall_fields, self.contacts, self.bonds,
+                      self.stats.quad)
+        o = self.stats.quad.to_numpy()
+        out = {"QuadDV": float(o[6]), "QuadDVR": float(o[7]), "MeanDVoR": float(o[8])}
+        out["residual"] = max(abs(v) for v in out.values())
+        return out
 
     def _by_colours(self, ncol: int, kernel, *args) -> None:
         """kernel(*args, base, blocks, k) for the colours 0 .. ncol - 1, k colours per call
@@ -616,7 +640,10 @@ class Simulation:
                 self._by_colours(ncol, sk.solve_colours, p, wl, ct, bd, cs)
             sweeps += 1
             if sweeps % s.check_every == 0 or sweeps >= s.max_sweeps:
-                residual = sk.sweep_residual(cs, items)
+                if s.convergence == "quad":
+                    residual = sk.quad_check_colours(p, wl, ct, bd, cs, items, self._blocks())
+                else:
+                    residual = sk.sweep_residual(cs, items)
                 if residual <= s.tolerance or sweeps >= s.max_sweeps:
                     break
         self.stats.sweeps[None] = sweeps

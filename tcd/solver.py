@@ -12,9 +12,12 @@ through the body velocities. Two schedules run the same local solves:
 - "partitioned" (tcd/partitioned.py): the serial sweep split over P CPU threads (P slabs of
   particles across the sample, their interior items at once, then the boundary items), all sweeps in
   one launch. Numbers depend on P, never on thread timing.
-Convergence: the relative change of impulses over a sweep, sum |dR| / sum |R|, checked every
-`check_every` sweeps (and at `max_sweeps`); the step stops when it is below `tolerance` or at
-`max_sweeps`. The two norms per contact are only computed on the sweeps that check.
+Convergence: the relative change of impulses over a sweep, sum |dR| / sum |R| (measure
+"impulse", PHYSICS.md section 6), checked every `check_every` sweeps (and at `max_sweeps`);
+the step stops when it is below `tolerance` or at `max_sweeps`. The two norms per contact are
+only computed on the sweeps that check. Measure "quad" is LMGC90's 'Quad ' check instead
+(check_item_bond, check_item_contact, quad_residual): a pass that updates nothing and
+measures, in velocity, the correction every local solve would still make.
 Existing overlap (g_beg < 0) is not corrected: the target end gap is max(g_beg, 0), so a
 converged step injects no energy and never adds overlap (contacts.contact_geometry).
 Everything here is deterministic: no float atomics, reductions in a fixed order. Body and
@@ -148,6 +151,132 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
         apply_impulse(p, i, j, n, dr)
         bd.impulse[b] = r_new
     return dr, r_new
+
+
+# --- LMGC90's 'Quad ' convergence check (measure "quad") -----------------------------------------
+# LMGC90 (mod_nlgs, check type 'Quad ') checks convergence with a pass that updates nothing: for
+# each interaction, R is its impulse and R' what its local solve would make of it at the
+# current body velocities; dV = W (R - R') is the velocity correction still to come, W the
+# interaction's diagonal block of the Delassus operator (diag(wnn, wtt, wtt) in its frame for
+# spheres; a bond's compliance is not in W). With R_m = (R + R') / 2, WRR = (W R . R +
+# W R' . R') / 2 and WRWR = (|W R|^2 + |W R'|^2) / 2, summed over the interactions (N: those
+# with R_m != 0):
+#   QuadDV = sqrt(sum |dV|^2 / sum WRWR), QuadDVR = sqrt(sum |dV|^2 |R_m|^2 / N) / (sum WRR / N),
+#   MeanDVoR = sum R_m . dV / sum WRR,
+# and the step has converged when all three are below the tolerance in absolute value: the
+# residual reported is the largest of the three.
+QUAD_SUMS = 6      # sum |dV|^2, sum |dV|^2 |R_m|^2, sum R_m . dV, sum WRR, sum WRWR, N
+
+
+@ti.func
+def quad_terms(r_old, r_new, n, wnn, wtt):
+    """One interaction's terms of the 'Quad ' sums (see QUAD_SUMS)."""
+    d = r_old - r_new
+    dn = d.dot(n)
+    dv = wnn * dn * n + wtt * (d - dn * n)
+    ro = r_old.dot(n)
+    rn = r_new.dot(n)
+    wro = wnn * ro * n + wtt * (r_old - ro * n)
+    wrn = wnn * rn * n + wtt * (r_new - rn * n)
+    rm = 0.5 * (r_old + r_new)
+    rm2 = rm.dot(rm)
+    dv2 = dv.dot(dv)
+    active = 0.0
+    if rm2 > 0.0:
+        active = 1.0
+    return ti.Vector([dv2, dv2 * rm2, rm.dot(dv), 0.5 * (wro.dot(r_old) + wrn.dot(r_new)),
+                      0.5 * (wro.dot(wro) + wrn.dot(wrn)), active])
+
+
+@ti.func
+def check_item_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part):
+    """'Quad ' terms of contact k: its local solve (as solve_contact_dr) without applying it."""
+    terms = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    wnn = ct.wnn[k]
+    if wnn > 0.0:
+        i, j, n = ct.i[k], ct.j[k], ct.normal[k]
+        r_old = ct.impulse[k]
+        u = relative_velocity(p, wl, i, j, n)
+        wtt = ct.wtt[k]
+        un = u.dot(n)
+        rn_old = r_old.dot(n)
+        ufn = un - wnn * rn_old
+        uft = (u - un * n) - wtt * (r_old - rn_old * n)
+        rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], 1.0 / wnn, 1.0 / wtt, ct.mu[k])
+        terms = quad_terms(r_old, rn * n + rt, n, wnn, wtt)
+    return terms
+
+
+@ti.func
+def check_item_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
+    """'Quad ' terms of bond b (intact): its own local solve (as solve_bond_dr) without
+    applying it. A particle block's exact solution solves each of its bonds' equations, so
+    a converged block relaxation leaves these terms at zero too."""
+    terms = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    if bd.state[b] == INTACT:
+        i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+        r_old = bd.impulse[b]
+        u = relative_velocity(p, wl, i, j, n)
+        un = u.dot(n)
+        rn_old = r_old.dot(n)
+        ri, rj = p.radius[i], p.radius[j]
+        wnn = p.inv_mass[i] + p.inv_mass[j]
+        wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
+        ufn = un - wnn * rn_old
+        uft = (u - un * n) - wtt * (r_old - rn_old * n)
+        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
+        terms = quad_terms(r_old, rn * n + rt, n, wnn, wtt)
+    return terms
+
+
+@ti.func
+def quad_residual(sums):
+    """max(QuadDV, QuadDVR, |MeanDVoR|) from the QUAD_SUMS sums; 0 when nothing is loaded
+    (LMGC90 then counts the step as converged too)."""
+    res = 0.0
+    if sums[5] > 0.0 and sums[3] > 0.0 and sums[4] > 0.0:
+        quad_dv = ti.sqrt(sums[0] / sums[4])
+        quad_dvr = ti.sqrt(sums[1] / sums[5]) / (sums[3] / sums[5])
+        mean_dvor = ti.abs(sums[2]) / sums[3]
+        res = ti.max(quad_dv, ti.max(quad_dvr, mean_dvor))
+    return res
+
+
+@ti.func
+def quad_check_range(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                     bd: ti.template(), b0, b1, c0, c1):
+    """The 'Quad ' residual of bonds b0..b1 and contacts c0..c1 (serial, in item order)."""
+    sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    n_part = p.count[None]
+    for b in range(b0, b1):
+        sums += check_item_bond(p, wl, bd, b)
+    for k in range(c0, c1):
+        sums += check_item_contact(p, wl, ct, k, n_part)
+    return quad_residual(sums)
+
+
+@ti.kernel
+def quad_norms(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+               out: ti.template()):
+    """The 'Quad ' sums of all bonds and contacts at the current state, then QuadDV, QuadDVR,
+    MeanDVoR (out[0..5]: the sums, out[6..8]: the norms; Simulation.quad_norms)."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        n_part = p.count[None]
+        for b in range(bd.total[None]):
+            sums += check_item_bond(p, wl, bd, b)
+        for k in range(ct.total[None]):
+            sums += check_item_contact(p, wl, ct, k, n_part)
+        for m in ti.static(range(QUAD_SUMS)):
+            out[m] = sums[m]
+        out[6] = 0.0
+        out[7] = 0.0
+        out[8] = 0.0
+        if sums[5] > 0.0 and sums[3] > 0.0 and sums[4] > 0.0:
+            out[6] = ti.sqrt(sums[0] / sums[4])
+            out[7] = ti.sqrt(sums[1] / sums[5]) / (sums[3] / sums[5])
+            out[8] = sums[2] / sums[3]
 
 
 # --- particle-block relaxation of the bonds ---------------------------------------------------
@@ -506,9 +635,12 @@ def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
 @ti.kernel
 def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                 st: ti.template(), max_sweeps: ti.i32, tol: float, check_every: ti.i32,
-                symmetric: ti.i32, accel: ti.template(), blocks: ti.template()):
+                symmetric: ti.i32, accel: ti.template(), blocks: ti.template(),
+                quad: ti.template()):
     """All sweeps of one step in one launch. `symmetric`: 0 every sweep forward (item
-    order), 1 forward and backward sweeps alternate. `accel` (static): 0 plain Gauss-Seidel;
+    order), 1 forward and backward sweeps alternate. `quad` (static): 0 the convergence
+    measure is the sweep's relative impulse change, 1 LMGC90's 'Quad ' check (a pass over
+    the system's items that updates nothing, quad_check_range). `accel` (static): 0 plain Gauss-Seidel;
     1 nonsmooth nonlinear conjugate gradient (NNCG, Silcowitz, Niebe & Erleben 2010): each
     sweep's change g_k is used as a descent direction and the impulses get the momentum
     beta p_{k-1}, beta = |g_k|^2 / |g_{k-1}|^2, restarted (p = g) when beta > 1. The momentum
@@ -539,8 +671,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                 rsum = 0.0
                 g2 = 0.0
                 measure = 0
-                if (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps:
-                    measure = 1
+                if ti.static(quad == 0):
+                    if (sweeps + 1) % check_every == 0 or sweeps + 1 >= max_sweeps:
+                        measure = 1
                 # symmetric Gauss-Seidel: forward sweeps alternate with backward ones (on a
                 # shear it needs more sweeps than forward ones alone: 34.4 against 25.0)
                 backward = 0
@@ -586,7 +719,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                 sweeps += 1
                 if sweeps % check_every == 0 or sweeps >= max_sweeps:
                     residual = 0.0
-                    if rsum > 0.0:
+                    if ti.static(quad == 1):
+                        residual = quad_check_range(p, wl, ct, bd, b0, b1, c0, c1)
+                    elif rsum > 0.0:
                         residual = dsum / rsum
                     if residual <= tol or sweeps >= max_sweeps:
                         done = 1
@@ -813,6 +948,41 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
         if r > 0.0:
             res = d / r
         cs.residual[None] = res
+    return cs.residual[None]
+
+
+@ti.kernel
+def quad_check_colours(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                       bd: ti.template(), cs: ti.template(), count: ti.i32,
+                       blocks: ti.template()) -> float:
+    """The coloured schedule's 'Quad ' check (measure "quad"): the `count` items as solve_item
+    numbers them (bond blocks, or bonds, then contacts; a block holds the bonds where its
+    particle is i), in fixed chunks of RESIDUAL_CHUNK items in parallel, then the partial sums
+    in chunk order (deterministic, as sweep_residual); returns quad_residual of the sums."""
+    for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
+        nb = bd.total[None]
+        if ti.static(blocks == 1):
+            nb = p.count[None]
+        n_part = p.count[None]
+        sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        for q in range(c * RESIDUAL_CHUNK, ti.min(count, (c + 1) * RESIDUAL_CHUNK)):
+            if q < nb:
+                if ti.static(blocks == 1):
+                    for m in range(particle_bond_count(bd, q)):
+                        b = particle_bond(bd, q, m)
+                        if bd.i[b] == q:
+                            sums += check_item_bond(p, wl, bd, b)
+                else:
+                    sums += check_item_bond(p, wl, bd, q)
+            else:
+                sums += check_item_contact(p, wl, ct, q - nb, n_part)
+        cs.qpartial[c] = sums
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
+            sums += cs.qpartial[c]
+        cs.residual[None] = quad_residual(sums)
     return cs.residual[None]
 
 

@@ -346,6 +346,8 @@ class ColourSet:
         self.ncol, self.base = _scalar(), _scalar()
         # the residual's partial sums, one per chunk of RESIDUAL_CHUNK items
         self.partial = ti.Vector.field(2, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
+        # the same for the 'Quad ' check's six sums (solver.quad_check_colours)
+        self.qpartial = ti.Vector.field(6, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
         self.residual = ti.field(backend.real(), shape=())
 
     def reset(self):
@@ -400,6 +402,8 @@ class SolverStats:
         self.sys_residual = _real(MAX_SYSTEMS)
         self.colours = _scalar()
         self.colour_overflow = _scalar()
+        # Simulation.quad_norms: the 'Quad ' sums and norms of the current state
+        self.quad = _real(9)
 
     def reset(self):
         self.sweeps[None] = 0

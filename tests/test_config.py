@@ -33,6 +33,7 @@ gravity = 9.8
 colouring = "rounds"
 sweep_order = "forward"
 warm_start_extrapolation = 0.5
+convergence = "quad"
 
 [material]
 density = 2500
@@ -203,6 +204,8 @@ def test_to_settings_and_to_law_carry_the_values():
     assert (st.schedule, st.alert_ratio, st.colouring) == ("coloured", 0.2, "rounds")
     assert st.sweep_order == "forward"
     assert st.warm_start_extrapolation == 0.5
+    assert st.convergence == "quad"
+    assert parse_scenario(MINIMAL).solver.to_settings().convergence == "impulse"
     assert parse_scenario(MINIMAL).solver.to_settings().warm_start_extrapolation == 0.0
     assert parse_scenario(MINIMAL).solver.to_settings().sweep_order == "symmetric"
     assert tuple(st.gravity) == (0.0, 0.0, -9.8)
@@ -483,6 +486,13 @@ def test_unknown_sweep_order_is_refused(tmp_path):
     assert_names(err, "solver.sweep_order", "'forward'", "'symmetric'")
     with pytest.raises(ValueError, match="sweep_order must be one of .*'backward'"):
         SolverSettings(sweep_order="backward")
+
+
+def test_unknown_convergence_measure_is_refused(tmp_path):
+    err = refusal(tmp_path, FULL.replace('convergence = "quad"', 'convergence = "lmgc90"'))
+    assert_names(err, "solver.convergence", "'impulse'", "'quad'")
+    with pytest.raises(ValueError, match="convergence must be one of .*'lmgc90'"):
+        SolverSettings(convergence="lmgc90")
 
 
 @pytest.mark.parametrize("value", ["1.5", "-0.1"])
