@@ -80,6 +80,19 @@ def solve_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_p
 
 
 @ti.func
+def contact_law(u, r_old, n, wnn, wtt, rhs, mu):
+    """A frictional contact's local solve: its new impulse, given the relative velocity u
+    with its current impulse r_old applied, its Delassus diagonal (wnn, wtt, wtt in its frame)
+    and its gap term and friction (laws.signorini_coulomb on the free velocity)."""
+    un = u.dot(n)
+    rn_old = r_old.dot(n)
+    ufn = un - wnn * rn_old
+    uft = (u - un * n) - wtt * (r_old - rn_old * n)
+    rn, rt = laws.signorini_coulomb(ufn, uft, rhs, 1.0 / wnn, 1.0 / wtt, mu)
+    return rn * n + rt
+
+
+@ti.func
 def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part):
     """Local solve of contact k; returns (dR, R) (zero vectors if both bodies are kinematic).
 
@@ -103,13 +116,7 @@ def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, 
         else:
             vj = wl.velocity[j - n_part]
         u = vj - p.v[i] - spin.cross(n)
-        wtt = ct.wtt[k]
-        un = u.dot(n)
-        rn_old = r_old.dot(n)
-        ufn = un - wnn * rn_old
-        uft = (u - un * n) - wtt * (r_old - rn_old * n)
-        rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], 1.0 / wnn, 1.0 / wtt, ct.mu[k])
-        r_new = rn * n + rt
+        r_new = contact_law(u, r_old, n, wnn, ct.wtt[k], ct.rhs[k], ct.mu[k])
         dr = r_new - r_old
         c = n.cross(dr)
         # plain load/store (no atomics): callers never let two threads touch one body
@@ -198,12 +205,8 @@ def check_item_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k
         r_old = ct.impulse[k]
         u = relative_velocity(p, wl, i, j, n)
         wtt = ct.wtt[k]
-        un = u.dot(n)
-        rn_old = r_old.dot(n)
-        ufn = un - wnn * rn_old
-        uft = (u - un * n) - wtt * (r_old - rn_old * n)
-        rn, rt = laws.signorini_coulomb(ufn, uft, ct.rhs[k], 1.0 / wnn, 1.0 / wtt, ct.mu[k])
-        terms = quad_terms(r_old, rn * n + rt, n, wnn, wtt)
+        terms = quad_terms(r_old, contact_law(u, r_old, n, wnn, wtt, ct.rhs[k], ct.mu[k]), n,
+                           wnn, wtt)
     return terms
 
 
