@@ -103,7 +103,7 @@ class SolverConfig(_Model):
     convergence measure; convergence: "impulse" (the relative impulse change of a sweep, sum
     |dR| / sum |R|, the default) or "quad" (LMGC90's 'Quad ' check: a pass that updates
     nothing, measuring the velocity corrections the local solves would still make; its
-    QuadDV, QuadDVR and |MeanDVoR| must all be below the tolerance; LMGC90's scripts often use
+    QuadDV, QuadDVR and |MeanDVoR| must all be below the tolerance; LMGC90's default is
     1.666e-4); max_sweeps per step; check_every: sweeps between convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
     "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
     `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
@@ -365,7 +365,8 @@ class ShearStage(_Model):
     (relative paths are relative to the scenario file's directory); `{seed}` in it is replaced
     by each sample's seed, so a study can shear a set of prepared samples. `tolerance` and
     `max_sweeps`: the solver's during this stage (default: those of `[solver]`); a bonded
-    sample needs a tighter tolerance than a pour (README, "Convergence"). `renumber`: number
+    sample needs a tighter tolerance than a pour (docs/measurements.md, "Convergence of the
+    shear"). `renumber`: number
     the particles along the shear (x) before bonding (`Simulation.renumber`): cheaper steps on
     the partitioned schedule (on one thread it depends on the sweep order: README,
     "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index)."""
