@@ -578,7 +578,7 @@ class Simulation:
         sk.quad_norms(self.particles, self.wall_fields, self.contacts, self.bonds,
                       self.stats.quad)
         o = self.stats.quad.to_numpy()
-        out = {"QuadDV": float(o[6]), "QuadDVR": float(o[7]), "MeanDVoR": float(o[8])}
+        out = {"QuadDV": float(o[0]), "QuadDVR": float(o[1]), "MeanDVoR": float(o[2])}
         out["residual"] = max(abs(v) for v in out.values())
         return out
 

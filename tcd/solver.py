@@ -142,22 +142,30 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
     if bd.state[b] == INTACT:
         i, j, n = bd.i[b], bd.j[b], bd.normal[b]
         r_old = bd.impulse[b]
-        u = relative_velocity(p, wl, i, j, n)
-        un = u.dot(n)
-        ut = u - un * n
-        rn_old = r_old.dot(n)
-        rt_old = r_old - rn_old * n
-        ri, rj = p.radius[i], p.radius[j]
-        wnn = p.inv_mass[i] + p.inv_mass[j]
-        wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
-        ufn = un - wnn * rn_old
-        uft = ut - wtt * rt_old
-        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
-        r_new = rn * n + rt
+        r_new, _, _ = bond_law(p, wl, bd, b, r_old)
         dr = r_new - r_old
         apply_impulse(p, i, j, n, dr)
         bd.impulse[b] = r_new
     return dr, r_new
+
+
+@ti.func
+def bond_law(p: ti.template(), wl: ti.template(), bd: ti.template(), b, r_old):
+    """Intact bond b's local solve on its own at the current body velocities, from impulse
+    r_old: (its new impulse, W_nn, W_tt of its Delassus diagonal)."""
+    i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+    u = relative_velocity(p, wl, i, j, n)
+    un = u.dot(n)
+    ut = u - un * n
+    rn_old = r_old.dot(n)
+    rt_old = r_old - rn_old * n
+    ri, rj = p.radius[i], p.radius[j]
+    wnn = p.inv_mass[i] + p.inv_mass[j]
+    wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
+    ufn = un - wnn * rn_old
+    uft = ut - wtt * rt_old
+    rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
+    return rn * n + rt, wnn, wtt
 
 
 # --- LMGC90's 'Quad ' convergence check (measure "quad") -----------------------------------------
@@ -217,69 +225,61 @@ def check_item_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
     a converged block relaxation leaves these terms at zero too."""
     terms = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     if bd.state[b] == INTACT:
-        i, j, n = bd.i[b], bd.j[b], bd.normal[b]
         r_old = bd.impulse[b]
-        u = relative_velocity(p, wl, i, j, n)
-        un = u.dot(n)
-        rn_old = r_old.dot(n)
-        ri, rj = p.radius[i], p.radius[j]
-        wnn = p.inv_mass[i] + p.inv_mass[j]
-        wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
-        ufn = un - wnn * rn_old
-        uft = (u - un * n) - wtt * (r_old - rn_old * n)
-        rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
-        terms = quad_terms(r_old, rn * n + rt, n, wnn, wtt)
+        r_new, wnn, wtt = bond_law(p, wl, bd, b, r_old)
+        terms = quad_terms(r_old, r_new, bd.normal[b], wnn, wtt)
     return terms
 
 
 @ti.func
-def quad_residual(sums):
-    """max(QuadDV, QuadDVR, |MeanDVoR|) from the QUAD_SUMS sums; 0 when nothing is loaded
+def quad_values(sums):
+    """(QuadDV, QuadDVR, MeanDVoR) from the QUAD_SUMS sums; zeros when nothing is loaded
     (LMGC90 then counts the step as converged too)."""
-    res = 0.0
+    out = ti.Vector([0.0, 0.0, 0.0])
     if sums[5] > 0.0 and sums[3] > 0.0 and sums[4] > 0.0:
-        quad_dv = ti.sqrt(sums[0] / sums[4])
-        quad_dvr = ti.sqrt(sums[1] / sums[5]) / (sums[3] / sums[5])
-        mean_dvor = ti.abs(sums[2]) / sums[3]
-        res = ti.max(quad_dv, ti.max(quad_dvr, mean_dvor))
-    return res
+        out = ti.Vector([ti.sqrt(sums[0] / sums[4]),
+                         ti.sqrt(sums[1] / sums[5]) / (sums[3] / sums[5]),
+                         sums[2] / sums[3]])
+    return out
 
 
 @ti.func
-def quad_check_range(p: ti.template(), wl: ti.template(), ct: ti.template(),
-                     bd: ti.template(), b0, b1, c0, c1):
-    """The 'Quad ' residual of bonds b0..b1 and contacts c0..c1 (serial, in item order)."""
+def quad_residual(sums):
+    """max(QuadDV, QuadDVR, |MeanDVoR|) from the QUAD_SUMS sums (0 when nothing is loaded)."""
+    v = quad_values(sums)
+    return ti.max(v[0], ti.max(v[1], ti.abs(v[2])))
+
+
+@ti.func
+def quad_sums_range(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                    bd: ti.template(), b0, b1, c0, c1):
+    """The 'Quad ' sums of bonds b0..b1 and contacts c0..c1 (serial, in item order)."""
     sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     n_part = p.count[None]
     for b in range(b0, b1):
         sums += check_item_bond(p, wl, bd, b)
     for k in range(c0, c1):
         sums += check_item_contact(p, wl, ct, k, n_part)
-    return quad_residual(sums)
+    return sums
+
+
+@ti.func
+def quad_check_range(p: ti.template(), wl: ti.template(), ct: ti.template(),
+                     bd: ti.template(), b0, b1, c0, c1):
+    """The 'Quad ' residual of bonds b0..b1 and contacts c0..c1 (serial, in item order)."""
+    return quad_residual(quad_sums_range(p, wl, ct, bd, b0, b1, c0, c1))
 
 
 @ti.kernel
 def quad_norms(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                out: ti.template()):
-    """The 'Quad ' sums of all bonds and contacts at the current state, then QuadDV, QuadDVR,
-    MeanDVoR (out[0..5]: the sums, out[6..8]: the norms; Simulation.quad_norms)."""
+    """QuadDV, QuadDVR, MeanDVoR of all bonds and contacts at the current state into out[0..2]
+    (Simulation.quad_norms)."""
     ti.loop_config(serialize=True)
     for _ in range(1):
-        sums = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-        n_part = p.count[None]
-        for b in range(bd.total[None]):
-            sums += check_item_bond(p, wl, bd, b)
-        for k in range(ct.total[None]):
-            sums += check_item_contact(p, wl, ct, k, n_part)
-        for m in ti.static(range(QUAD_SUMS)):
-            out[m] = sums[m]
-        out[6] = 0.0
-        out[7] = 0.0
-        out[8] = 0.0
-        if sums[5] > 0.0 and sums[3] > 0.0 and sums[4] > 0.0:
-            out[6] = ti.sqrt(sums[0] / sums[4])
-            out[7] = ti.sqrt(sums[1] / sums[5]) / (sums[3] / sums[5])
-            out[8] = sums[2] / sums[3]
+        v = quad_values(quad_sums_range(p, wl, ct, bd, 0, bd.total[None], 0, ct.total[None]))
+        for m in ti.static(range(3)):
+            out[m] = v[m]
 
 
 # --- particle-block relaxation of the bonds ---------------------------------------------------

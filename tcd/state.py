@@ -402,8 +402,8 @@ class SolverStats:
         self.sys_residual = _real(MAX_SYSTEMS)
         self.colours = _scalar()
         self.colour_overflow = _scalar()
-        # Simulation.quad_norms: the 'Quad ' sums and norms of the current state
-        self.quad = _real(9)
+        # Simulation.quad_norms: the 'Quad ' norms of the current state
+        self.quad = _real(3)
 
     def reset(self):
         self.sweeps[None] = 0
