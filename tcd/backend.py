@@ -61,7 +61,74 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         extra["kernel_profiler"] = True     # benchmarks/profile.py: time per kernel
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, **extra)
+    memoise_frontend()
     _state["arch"], _state["precision"] = arch, precision
+
+
+def memoise_frontend() -> bool:
+    """Memoise two pure functions of Taichi 1.7.4's Python frontend, which runs for every kernel
+    instantiation of every process, offline cache or not (the cache skips only the compilation
+    of the frontend's IR):
+
+    - `ASTTransformerContext.get_pos_info(node)`: the source excerpt of an AST node, with a
+      caret line under it, attached to every statement as debug information. It renders every
+      excerpt with `textwrap` again for each instantiation of each kernel: 18 of the 74 s of a
+      profiled tests/test_batch.py test (541 instantiations of about 100 kernels, since every
+      new field container passed as a template is a new instantiation). The memo returns the
+      very string Taichi renders, keyed by everything it reads (file, line offset, function
+      name, indentation, the node's kind and span, the first line of its body, the source lines
+      of the span), so the IR, the offline cache's keys and the error messages are unchanged.
+    - `getsourcelines(func)` as the frontend calls it (`taichi.lang.kernel_impl`): a function's
+      source, read and tokenised again for each instantiation; keyed by the function object.
+
+    Installed once, by `init`; a Taichi without these functions is left alone. Returns whether
+    the memo is in place."""
+    try:
+        from taichi.lang import kernel_impl
+        from taichi.lang.ast import ast_transformer_utils as utils
+        context = utils.ASTTransformerContext
+        pos_info = context.get_pos_info
+        sourcelines = kernel_impl.getsourcelines
+    except (ImportError, AttributeError):
+        return False
+    if getattr(pos_info, "_tcd_memo", False):
+        return True
+    rendered: dict = {}
+
+    def get_pos_info(self, node):
+        try:
+            body = getattr(node, "body", None)
+            first = body[0].lineno if isinstance(body, list) and body else None
+            last = max(node.end_lineno, node.lineno)
+            key = (self.file, self.lineno_offset, self.func.func.__name__, self.indent,
+                   type(node).__name__, node.lineno, node.end_lineno, node.col_offset,
+                   node.end_col_offset, first, tuple(self.src[node.lineno - 1:last]))
+        except (AttributeError, TypeError, IndexError):
+            return pos_info(self, node)
+        msg = rendered.get(key)
+        if msg is None:
+            msg = rendered[key] = pos_info(self, node)
+        return msg
+
+    sources: dict = {}
+
+    def getsourcelines(func):
+        try:
+            lines, start = sources[func]
+        except (KeyError, TypeError):
+            lines, start = sourcelines(func)
+            try:
+                sources[func] = (tuple(lines), start)
+            except TypeError:
+                pass
+            return lines, start
+        return list(lines), start
+
+    get_pos_info._tcd_memo = True
+    get_pos_info.__wrapped__ = pos_info
+    context.get_pos_info = get_pos_info
+    kernel_impl.getsourcelines = getsourcelines
+    return True
 
 
 # GPU backends tried, in order, for arch="gpu". Not OpenGL: Taichi 1.7.4's probe of it
