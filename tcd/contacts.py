@@ -30,6 +30,7 @@ step's CSR list and starts from that impulse.
 
 import taichi as ti
 
+from . import backend
 
 PLANE, CYLINDER = 0, 1
 
@@ -87,8 +88,10 @@ def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert:
               scatter: ti.template()):
     """One walk of every particle's cells: per-bucket counts of the incidences (`scatter`
     False), or (True, after grid_scan) each incidence written at its bucket's slots."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(g.buckets[None]):
         g.cell_count[c] = 0
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         lo, hi = box_cells(g, p, nb, i, half_alert)
         offset = system_cells(g, p, i)
@@ -121,6 +124,7 @@ def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32,
     """start[k] = sum(count[:k]) for k <= n: chunk sums in parallel, their scan (serial, one
     entry per SCAN_CHUNK), then each chunk's own scan in parallel (integers: exact, in any
     order)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
         s = 0
         for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
@@ -134,6 +138,7 @@ def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32,
             partial[c] = s
             s += t
         start[n] = s
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
         s = partial[c]
         for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
@@ -207,6 +212,7 @@ MARGIN_USE = 1.0 - 1e-6
 def neighbour_margins(p: ti.template(), nb: ti.template(), half_skin: float, h: float):
     """Each particle's margin for a new list: half the skin, or three times its reach over
     the coming step for a fast grain (a list that lasts it about two steps)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         nb.margin[i] = ti.max(half_skin, 3.0 * reach(p, i, h))
 
@@ -219,6 +225,7 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_a
     around each particle counts its neighbours (`fill` False, into nb.count) or writes them at
     nb.start (`fill` True) in ascending order, and keeps the positions the list was built at
     (nb.x_ref)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         lo, hi = box_cells(g, p, nb, i, half_alert)
         base = 0
@@ -263,6 +270,7 @@ def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float) -> ti.i3
     none does, a pair outside the list (gap at the build >= alert + both margins) still has
     a gap of at least alert + both reaches, so it cannot be a contact candidate."""
     nb.stale[None] = 0
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         if (p.x[i] - nb.x_ref[i]).norm() + reach(p, i, h) > MARGIN_USE * nb.margin[i]:
             nb.stale[None] = 1
@@ -277,6 +285,7 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
     held by an intact bond, then the walls within reach. Counts them (`fill` False, into
     ct.count) or writes them at ct.start (`fill` True) in canonical order: particle partners
     ascending (the list's order), then walls."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         base = 0
         if ti.static(fill):
@@ -318,6 +327,7 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
     the contact's impulse of the last step R_n, or with `extrap` = c > 0, where the contact also
     carried an impulse the step before, R_n + c (R_n - R_n-1) (then the cone's normal half:
     a negative normal impulse starts from zero; the first visit projects the rest)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for k in range(ct.total[None]):
         i, j = ct.i[k], ct.j[k]
         ri = p.radius[i]
@@ -369,10 +379,12 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
 
 @ti.kernel
 def save_history(ct: ti.template(), n: ti.i32):
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for k in range(ct.total[None]):
         ct.prev_j[k] = ct.j[k]
         ct.prev_impulse[k] = ct.impulse[k]
         ct.prev_old[k] = ct.impulse_old[k]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(n + 1):
         ct.prev_start[i] = ct.start[i]
     ct.prev_total[None] = ct.total[None]

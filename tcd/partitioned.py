@@ -377,7 +377,8 @@ def nlgs_partitioned(p: ti.template(), wl: ti.template(), ct: ti.template(), bd:
         for b in range(bd.total[None]):
             bd.acc_d[b] = bd.impulse[b]
     # one worker per part, each spread over SYSTEM_SPREAD iterations (Taichi's CPU runtime
-    # runs a loop of a few iterations on one thread: see solver.nlgs_serial)
+    # runs a loop of a few iterations on one thread: see solver.nlgs_serial); the one loop of
+    # tcd that is always handed to the thread pool (backend.serial_loops)
     for t in range(parts * SYSTEM_SPREAD):
         if t % SYSTEM_SPREAD == 0:
             working = 1

@@ -46,6 +46,7 @@ import numpy as np
 import taichi as ti
 
 from . import backend, io
+from .state import field_record
 from .contacts import exclusive_scan
 
 PLANE, CYLINDER = 0, 1
@@ -298,7 +299,7 @@ def resolve_section(section, x=None, walls: Optional[WallSet] = None):
 # ----------------------------------------------------------------------------------------------
 # device buffers and kernels
 
-@ti.data_oriented
+@field_record
 class RenderBuffers:
     """Device buffers of the renderer, allocated once with capacities.
 
@@ -380,8 +381,10 @@ def _sphere_cells(b: ti.template(), i):
 @ti.kernel
 def _grid_count(b: ti.template()):
     dims = b.grid_dims[None]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(dims[0] * dims[1] * dims[2]):
         b.cell_count[c] = 0
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(b.sphere_count[None]):
         lo, hi = _sphere_cells(b, i)
         for cx in range(lo[0], hi[0] + 1):
@@ -393,6 +396,7 @@ def _grid_count(b: ti.template()):
 @ti.kernel
 def _grid_scatter(b: ti.template()):
     dims = b.grid_dims[None]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(dims[0] * dims[1] * dims[2]):
         b.cell_count[c] = 0
     # serial: each cell lists its spheres in ascending index order (deterministic frames)
@@ -634,6 +638,7 @@ def _composite_walls(b: ti.template(), o, d, t_lo, t_end, col):
 @ti.kernel
 def _trace_image(b: ti.template()):
     height, width = b.image_size[None][0], b.image_size[None][1]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i, j in ti.ndrange(height, width):
         o, d = _camera_ray(b, i, j, height, width)
         t_lo, t_hi, t_cut = _kept_interval(b, o, d)

@@ -26,7 +26,7 @@ contact updates are plain load/store (no atomics): no two threads ever touch one
 
 import taichi as ti
 
-from . import contacts, laws
+from . import backend, contacts, laws
 from .state import COLOUR_WORDS, MAX_COLOURS, RESIDUAL_CHUNK, WALL_CHUNK
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
@@ -407,6 +407,7 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
     """Per step, after bonds_prepare: (alpha, beta) of each intact bond's ends (Bonds.stiff)
     and the inverse block matrix M' + sum G_b^T K_b G_b of each particle with intact bonds
     (Bonds.inverse; held unknowns get identity rows and columns)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             i, j = bd.i[b], bd.j[b]
@@ -417,6 +418,7 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                 1.0 / (bd.ct[b] + p.inv_mass[j] + rj * rj * p.inv_inertia[j]),
                 1.0 / (bd.cn[b] + p.inv_mass[i]),
                 1.0 / (bd.ct[b] + p.inv_mass[i] + ri * ri * p.inv_inertia[i])])
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for q in range(p.count[None]):
         rq = p.radius[q]
         a = ti.Matrix.zero(float, 6, 6)
@@ -616,6 +618,7 @@ def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
     """Keep the beginning-of-step velocities; add the impulse of external forces.
     (g is built inside the loop: a vector of f64 set before the parallel loop is handed to it
     through Taichi's global temporaries, misaligned on CUDA: CUDA_ERROR_MISALIGNED_ADDRESS.)"""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         g = ti.Vector([gx, gy, gz])
         p.v_old[i] = p.v[i]
@@ -658,6 +661,7 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     # Taichi's CPU runtime runs a parallel loop of a few iterations on one thread (measured:
     # 2 or 64 iterations take as long as serially, 1024 split over the cores), so the
     # systems are spread over SYSTEM_SPREAD iterations each, all but the first empty
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for t in range(p.systems[None] * SYSTEM_SPREAD):
         if t % SYSTEM_SPREAD == 0:
             sy = t // SYSTEM_SPREAD
@@ -801,9 +805,11 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
     contact q - nb (nb = n with blocks). A counting sort lists the items colour by colour in
     `cs.order` (CSR `cs.start`, canonical order inside a colour). Broken bonds and particles
     without intact bonds get colour -1 and are left out. Sets st.colours, st.colour_overflow."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(n):
         for w in ti.static(range(COLOUR_WORDS)):
             cs.mask[i, w] = ti.u32(0)
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(MAX_COLOURS + 1):
         cs.start[c] = 0
     nb = bd.total[None]
@@ -861,6 +867,7 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
     ti.loop_config(serialize=True)
     for c in range(MAX_COLOURS):
         cs.start[c + 1] += cs.start[c]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(MAX_COLOURS):
         cs.cursor[c] = cs.start[c]
     ti.loop_config(serialize=True)
@@ -883,6 +890,7 @@ def solve_colours(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti
     numbers as solve_colour colour by colour. Compile time grows faster than k (CPU, particle
     blocks: 4 s for k = 4, 13 s for 8, 48 s for 16)."""
     for c in ti.static(range(k)):
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
                        cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
             solve_item(p, wl, ct, bd, cs, s, blocks)
@@ -898,6 +906,7 @@ def solve_colours_next(p: ti.template(), wl: ti.template(), ct: ti.template(),
     argument has no argument buffer for a GPU launch to copy from host memory (CUDA may wait
     for the stream before such a copy). Same numbers as solve_colours."""
     for c in ti.static(range(k)):
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(cs.base[None] + c, MAX_COLOURS)],
                        cs.start[ti.min(cs.base[None] + c + 1, MAX_COLOURS)]):
             solve_item(p, wl, ct, bd, cs, s, blocks)
@@ -933,6 +942,7 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
     """Relative impulse change of the last sweep: partial sums over fixed chunks of
     RESIDUAL_CHUNK items in item order (in parallel), then the partials in chunk order
     (deterministic: the same sums in the same order whatever the thread timing)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
         d = 0.0
         r = 0.0
@@ -962,6 +972,7 @@ def quad_check_colours(p: ti.template(), wl: ti.template(), ct: ti.template(),
     numbers them (bond blocks, or bonds, then contacts; a block holds the bonds where its
     particle is i), in fixed chunks of RESIDUAL_CHUNK items in parallel, then the partial sums
     in chunk order (deterministic, as sweep_residual); returns quad_residual of the sums."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
         nb = bd.total[None]
         if ti.static(blocks == 1):
@@ -1053,9 +1064,11 @@ def colour_rounds_init(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.t
                        blocks: ti.template()):
     """Every item waiting (-2) or inactive (-1: broken bond, particle without intact bonds);
     bodies unclaimed; colour counts zero."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(n):
         cs.claim[b] = -1
         cs.best[b] = ti.i64(-1)
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(MAX_COLOURS + 1):
         cs.start[c] = 0
     cs.coloured[None] = 0
@@ -1063,6 +1076,7 @@ def colour_rounds_init(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.t
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = n
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for q in range(nb + ct.total[None]):
         active = 1
         if q < nb:
@@ -1084,8 +1098,10 @@ def colour_round(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templat
     """The COLOUR_PASSES passes of round r (pass numbers it, it + 1, ...), each its bids then
     its takes, in one kernel call."""
     for t in ti.static(range(COLOUR_PASSES)):
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for q in range(item_total(n, ct, bd, blocks)):
             colour_bid(n, ct, bd, cs, q, r, it + t, blocks)
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for q in range(item_total(n, ct, bd, blocks)):
             colour_take(n, ct, bd, cs, q, r, it + t, blocks)
 
@@ -1153,11 +1169,13 @@ def colour_rounds_order(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.
     ti.loop_config(serialize=True)
     for c in range(MAX_COLOURS):
         cs.start[c + 1] += cs.start[c]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(MAX_COLOURS):
         cs.cursor[c] = cs.start[c]
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = n
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for q in range(nb + ct.total[None]):
         c = cs.item_colour[q]
         if c >= 0:
@@ -1173,6 +1191,7 @@ def warm_start_colours(p: ti.template(), ct: ti.template(), bd: ti.template(), c
     colour after colour (within a colour in parallel: its items share no body). A bond block
     applies the bonds whose first end is its particle, so each bond once."""
     for c in ti.static(range(k)):
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
                        cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
             warm_start_item(p, ct, bd, cs, s, blocks)
@@ -1205,6 +1224,7 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
     """Current frame; tangential displacement and history carried into the new tangent plane
     (projected, length kept); extra compliance 1/(theta H^2 K) and displacement terms; the
     warm start R_n + extrap (R_n - R_n-1) (extrap 0: the last step's impulse)."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             r_last = bd.impulse[b]
@@ -1259,6 +1279,7 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
                  t_end: float, mode: ti.i32, k_m: float, eta_m: float, k_k: float,
                  eta_k: float, tangent_factor: float, yield_stress: float):
     """Tangential displacement at the end of the step, Burgers history, brittle yield."""
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             i, j, n = bd.i[b], bd.j[b], bd.normal[b]
@@ -1290,6 +1311,7 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
 # --- integration and wall forces ---------------------------------------------------------------
 @ti.kernel
 def integrate(p: ti.template(), h: float, theta: float):
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         p.x[i] += h * (theta * p.v[i] + (1.0 - theta) * p.v_old[i])
 
@@ -1323,6 +1345,7 @@ def project_overlaps_colours(p: ti.template(), wl: ti.template(), ct: ti.templat
     """project_overlaps for the contacts of colours base .. base + k - 1, colour after colour,
     each colour's at once (they share no body): the coloured schedule's projection."""
     for c in ti.static(range(k)):
+        ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
                        cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
             nb = bd.total[None]
@@ -1361,6 +1384,7 @@ def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float
     sums per (wall, chunk of WALL_CHUNK contacts) in parallel, then per wall over its chunks
     in chunk order (deterministic)."""
     nw = wl.count[None]
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for t in range(nw * ((ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK)):
         chunks = (ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK
         w, c = t // chunks, t % chunks
@@ -1369,6 +1393,7 @@ def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float
             if ct.j[k] == p.count[None] + w:
                 s += ct.impulse[k]
         ct.wall_partial[t] = s
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for w in range(nw):
         chunks = (ct.total[None] + WALL_CHUNK - 1) // WALL_CHUNK
         s = ti.Vector([0.0, 0.0, 0.0])

@@ -1,0 +1,106 @@
+"""The kernels' loops give the same numbers handed to Taichi's thread pool or run inline
+(tcd.backend.serial_loops): the test workers run inline on one thread each (tests/conftest.py),
+so the thread pool's side is a child process, and every number must match bit for bit.
+
+Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
+are checked before Taichi starts."""
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tcd import backend as tcd_backend
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def run_case():
+    """A pour of 150 grains, 300 steps (serial and coloured schedules; the coloured one capped
+    at 100 sweeps, as each of its colours is a parallel loop), then the serial one bonded and
+    sheared by its moving mould: sweeps, positions, velocities, contact and bond impulses."""
+    import dataclasses
+    from test_partitioned import pour
+    out = {}
+    for name, settings in (("serial", {"schedule": "serial"}),
+                           ("coloured", {"schedule": "coloured", "colouring": "greedy",
+                                        "max_sweeps": 100})):
+        sim, sweeps = pour(steps=300, **settings)
+        out[name] = {"sweeps": sweeps.tolist(), "x": sim.positions().tolist(),
+                     "v": sim.velocities().tolist(),
+                     "impulse": sim.contact_arrays()["impulse"].tolist()}
+        if name == "serial":
+            assert sim.create_bonds(2e-4) > 20
+            sim.set_walls([sim.walls[0], dataclasses.replace(
+                sim.walls[1], motion="constant", velocity=(0.02, 0.0, 0.0), start=sim.time)])
+            bonded = [sim.step().sweeps for _ in range(15)]
+            d = sim.state_dict()
+            out["bonded"] = {"sweeps": bonded, "x": sim.positions().tolist(),
+                             "bonds": d["bonds/impulse"].tolist(),
+                             "wall": sim.wall_force(1).tolist()}
+        sim.close()
+    return out
+
+
+def test_loops_in_the_pool_or_inline_give_the_same_numbers(tmp_path, backend):
+    arch, precision = backend
+    if arch != "cpu":
+        pytest.skip("inline loops are a CPU setting")
+    here = tcd_backend.serial_loops()
+    # the child takes the other side: the pool of two threads when this process runs inline
+    child_init = "cpu_threads=2, parallel_loops=True" if here else "cpu_threads=1"
+    script = tmp_path / "other_side.py"
+    script.write_text(textwrap.dedent(f"""
+        import json, sys
+        sys.path.insert(0, {str(ROOT)!r})
+        sys.path.insert(0, {str(ROOT / "tests")!r})
+        import tcd
+        from tcd import backend
+        tcd.init({arch!r}, {precision!r}, {child_init})
+        assert backend.serial_loops() is {not here}
+        from test_threads import run_case
+        print(json.dumps(run_case()))
+    """))
+    env = {k: v for k, v in os.environ.items()
+           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
+    env["PYTHONPATH"] = str(ROOT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    child = json.loads(out.stdout.strip().splitlines()[-1])
+    mine = run_case()
+    assert max(mine["serial"]["sweeps"]) > 20          # impacts: many sweeps per step
+    assert set(child) == set(mine)
+    for case in mine:
+        for key in mine[case]:
+            assert np.array_equal(np.array(child[case][key]), np.array(mine[case][key])), \
+                (case, key)
+
+
+def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
+    env = {k: v for k, v in os.environ.items()
+           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
+    env.update(env_extra, PYTHONPATH=str(ROOT))
+    code = f"import tcd\nfrom tcd import backend\n{call}\nprint(backend.serial_loops())"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, env=env)
+
+
+def test_thread_and_loop_settings_are_read_and_checked():
+    assert run_init({"TCD_CPU_THREADS": "1"}).stdout.strip().endswith("True")
+    assert run_init({"TCD_CPU_THREADS": "2"}).stdout.strip().endswith("False")
+    both = {"TCD_CPU_THREADS": "1", "TCD_PARALLEL_LOOPS": "1"}
+    assert run_init(both).stdout.strip().endswith("False")
+    assert run_init({"TCD_PARALLEL_LOOPS": "0"}).stdout.strip().endswith("True")
+    assert run_init({}, "tcd.init('cpu', 'f64', cpu_threads=1)").stdout.strip().endswith("True")
+    for env, message in (({"TCD_CPU_THREADS": "two"}, "TCD_CPU_THREADS must be a positive integer"),
+                         ({"TCD_CPU_THREADS": "0"}, "TCD_CPU_THREADS must be a positive integer"),
+                         ({"TCD_PARALLEL_LOOPS": "yes"}, "TCD_PARALLEL_LOOPS must be 0 or 1")):
+        out = run_init(env)
+        assert out.returncode != 0 and message in out.stderr, (env, out.stderr[-500:])
+    out = run_init({}, "tcd.init('cpu', 'f64', cpu_threads=-3)")
+    assert out.returncode != 0 and "cpu_threads must be a positive integer" in out.stderr
