@@ -126,11 +126,19 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         import concurrent.futures
         import multiprocessing
         ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
-        with concurrent.futures.ProcessPoolExecutor(max_workers=min(jobs, len(pending)),
+        workers = min(jobs, len(pending))
+        # each worker's share of the cores (its solver's threads for the partitioned schedule):
+        # one thread runs its kernels' loops inline (backend.serial_loops), the same numbers
+        if scenario.solver.schedule == "partitioned":
+            worker_threads = scenario.solver.threads
+        else:
+            worker_threads = max(1, (os.cpu_count() or 1) // workers)
+        with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
                                                     mp_context=ctx) as pool:
             futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
                                          scenario.backend.arch, scenario.backend.precision,
-                                         seed, str(out / f"sample_{seed}"), resume, progress)
+                                         seed, str(out / f"sample_{seed}"), resume, progress,
+                                         worker_threads)
                        for seed in pending}
             with ForwardTerm(pool):
                 for seed, future in futures.items():
@@ -352,11 +360,15 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     return summary
 
 
-def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress) -> dict:
-    """One sample in a worker process (see run_scenario's `jobs`)."""
+def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress,
+                cpu_threads=None) -> dict:
+    """One sample in a worker process (see run_scenario's `jobs`), on `cpu_threads` threads of
+    Taichi's CPU pool unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS says otherwise."""
     from .config import parse_scenario
     scn = parse_scenario(text, source).with_overrides(arch=arch, precision=precision)
-    backend.init(arch, precision)
+    if os.environ.get(backend.THREADS_ENV) or os.environ.get(backend.LOOPS_ENV):
+        cpu_threads = None
+    backend.init(arch, precision, cpu_threads=cpu_threads)
     return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
