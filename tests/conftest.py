@@ -65,6 +65,44 @@ def schedule_settings(name: str) -> dict:
 
 
 @pytest.fixture
+def other_side(tmp_path, backend):
+    """run(code): run `code` (Python, after `import tcd` and `tcd.init`, with tests/ on the
+    path; its last printed line is JSON) in a child process on the other side of
+    tcd.backend.serial_loops: a pool of two threads with parallel loops when this process runs
+    inline, one thread inline otherwise. Returns the parsed JSON."""
+    import json
+    import pathlib
+    import subprocess
+    import sys
+    import textwrap
+    from tcd import backend as tcd_backend
+    arch, precision = backend
+    root = pathlib.Path(__file__).resolve().parents[1]
+    inline_here = tcd_backend.serial_loops()
+    init = "cpu_threads=2, parallel_loops=True" if inline_here else "cpu_threads=1"
+
+    def run(code: str):
+        script = tmp_path / "other_side.py"
+        script.write_text(textwrap.dedent(f"""
+            import json, sys
+            sys.path.insert(0, {str(root)!r})
+            sys.path.insert(0, {str(root / "tests")!r})
+            import tcd
+            from tcd import backend
+            tcd.init({arch!r}, {precision!r}, {init})
+            assert backend.serial_loops() is {not inline_here}
+        """) + textwrap.dedent(code))
+        env = {k: v for k, v in os.environ.items()
+               if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
+        env["PYTHONPATH"] = str(root)
+        out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                             timeout=900, env=env)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+    return run
+
+
+@pytest.fixture
 def schedule_on_backend(backend):
     """check(schedule): skip a test of the CPU-only partitioned schedule on the GPU."""
     def check(schedule):

@@ -5,12 +5,7 @@ with one part it is the serial sweep itself, and its lists must hold every item 
 interior items inside their slab.
 """
 import functools
-import json
-import os
 import pathlib
-import subprocess
-import sys
-import textwrap
 
 import numpy as np
 import pytest
@@ -121,32 +116,15 @@ def test_slabs_are_cut_across_the_axis_where_they_alternate_least_in_memory():
     sim.close()
 
 
-def test_numbers_do_not_depend_on_the_number_of_threads(tmp_path, backend):
+def test_numbers_do_not_depend_on_the_number_of_threads(other_side):
     """P = 2 parts run by one Taichi thread give the numbers of the same P = 2 run by a pool of
     two threads: the test process runs one side (one thread when the test workers run inline,
     tests/conftest.py), a child process the other."""
-    from tcd import backend as tcd_backend
-    arch, precision = backend
-    one_here = tcd_backend.serial_loops()
-    child_init = "cpu_threads=2, parallel_loops=True" if one_here else "cpu_threads=1"
-    script = tmp_path / "other_side.py"
-    script.write_text(textwrap.dedent(f"""
-        import json, sys
-        sys.path.insert(0, {str(ROOT)!r})
-        sys.path.insert(0, {str(ROOT / "tests")!r})
-        import tcd
-        tcd.init({arch!r}, {precision!r}, {child_init})
+    child = other_side("""
         from test_partitioned import pour
         sim, sweeps = pour(steps=150, schedule="partitioned", threads=2)
-        print(json.dumps({{"x": sim.positions().tolist(), "sweeps": sweeps.tolist()}}))
-    """))
-    env = {k: v for k, v in os.environ.items()
-           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
-    env["PYTHONPATH"] = str(ROOT)
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=600, env=env)
-    assert out.returncode == 0, out.stderr[-2000:]
-    child = json.loads(out.stdout.strip().splitlines()[-1])
+        print(json.dumps({"x": sim.positions().tolist(), "sweeps": sweeps.tolist()}))
+    """)
     sim, sweeps = pour(steps=150, schedule="partitioned", threads=2)
     assert child["sweeps"] == sweeps.tolist()
     assert np.array_equal(np.array(child["x"]), sim.positions())

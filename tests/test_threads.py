@@ -4,12 +4,10 @@ so the thread pool's side is a child process, and every number must match bit fo
 
 Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
 are checked before Taichi starts."""
-import json
 import os
 import pathlib
 import subprocess
 import sys
-import textwrap
 
 import numpy as np
 import pytest
@@ -46,32 +44,13 @@ def run_case():
     return out
 
 
-def test_loops_in_the_pool_or_inline_give_the_same_numbers(tmp_path, backend):
-    arch, precision = backend
-    if arch != "cpu":
+def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend, other_side):
+    if backend[0] != "cpu":
         pytest.skip("inline loops are a CPU setting")
-    here = tcd_backend.serial_loops()
-    # the child takes the other side: the pool of two threads when this process runs inline
-    child_init = "cpu_threads=2, parallel_loops=True" if here else "cpu_threads=1"
-    script = tmp_path / "other_side.py"
-    script.write_text(textwrap.dedent(f"""
-        import json, sys
-        sys.path.insert(0, {str(ROOT)!r})
-        sys.path.insert(0, {str(ROOT / "tests")!r})
-        import tcd
-        from tcd import backend
-        tcd.init({arch!r}, {precision!r}, {child_init})
-        assert backend.serial_loops() is {not here}
+    child = other_side("""
         from test_threads import run_case
         print(json.dumps(run_case()))
-    """))
-    env = {k: v for k, v in os.environ.items()
-           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
-    env["PYTHONPATH"] = str(ROOT)
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=900, env=env)
-    assert out.returncode == 0, out.stderr[-3000:]
-    child = json.loads(out.stdout.strip().splitlines()[-1])
+    """)
     mine = run_case()
     assert max(mine["serial"]["sweeps"]) > 20          # impacts: many sweeps per step
     assert set(child) == set(mine)
