@@ -77,7 +77,7 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         parallel_loops = cpu_threads != 1
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
-    extra = {} if cpu_threads is None else {"cpu_max_num_threads": int(cpu_threads)}
+    extra = {} if cpu_threads is None else {"cpu_max_num_threads": cpu_threads}
     if not os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES"):
         # Taichi's offline kernel cache keeps 100 MB by default and evicts a quarter of it (least
         # recently used) when a process ends above that. tcd's kernels for a few capacity classes

@@ -35,8 +35,8 @@ def field_record(cls):
     attribute answers them. `ti.data_oriented` also replaces `__getattribute__` with a Python
     function so that kernels defined as methods bind to the object; tcd's containers have no
     kernel methods, and that hook made every attribute read of a container (each launch's
-    argument checks, every `ct.total` in the step loop) a Python call: about 400 per time step,
-    a fifth of the Python time of a step of a small system."""
+    argument checks, every `ct.total` in the step loop) a Python call: about 400 per time step
+    (a step of a bonded pair of spheres took 5.2 ms with the hook, 3.9 ms without)."""
     cls._data_oriented = True
     return cls
 
