@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 import taichi as ti
 
-from . import backend, contacts as ck, partitioned as pk, solver as sk
+from . import backend, contacts as ck, partitioned as pk, solver as sk, state as state_mod
 from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
                     Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
@@ -380,7 +380,8 @@ class Simulation:
         self.neighbours = acquire(Neighbours, 2 * cap, self.particles.capacity)
         self._neighbours_valid = False
         self.neighbour_builds = 0
-        self.bonds = acquire(Bonds, 1, self.particles.capacity, False)
+        # no bonds yet: the smallest buffer (64 slots; one class for every size, so no floor)
+        self.bonds = acquire(Bonds, 1, self.particles.capacity, False, minimum=64)
         self.colours = None
         self.partition = None
         self.stats = acquire(SolverStats, 1)
@@ -399,9 +400,11 @@ class Simulation:
         if ncells * self.systems >= 2**31:
             raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
                              "indices: enlarge cell_size or batch fewer systems")
-        # about 8 buckets per particle, never more than the cells (a power of two: c mod 2^k)
+        # about 8 buckets per particle up to the number of cells (a power of two: c mod 2^k),
+        # and at least the smallest capacity class, so that small simulations share their
+        # grid and its kernels (state.MIN_SLOTS; the buckets past the cells stay empty)
         buckets = 64
-        while buckets < min(8 * self.n, ncells):
+        while buckets < max(min(8 * self.n, ncells), state_mod.MIN_SLOTS):
             buckets *= 2
         grid = acquire(Grid, capacity, buckets)
         grid.configure(lo, self.cell_size, dims, buckets)
@@ -756,7 +759,7 @@ class Simulation:
         saved_bonds = self.bonds
         saved_contacts = self.contacts
         self.contacts = acquire(Contacts, saved_contacts.capacity, self.particles.capacity)
-        self.bonds = acquire(Bonds, 1, self.particles.capacity, False)
+        self.bonds = acquire(Bonds, 1, self.particles.capacity, False, minimum=64)
         self.alert = max(reach, 1e-300)
         saved_count = self.wall_fields.count[None]
         self.wall_fields.count[None] = 0
@@ -785,7 +788,8 @@ class Simulation:
         # unbonded sample, or for a batch's histories) is refitted to what the step needed
         self._refit_contacts = b > 0
         release(self.bonds)
-        bd = acquire(Bonds, max(b, 1), self.particles.capacity, b > 0 and self.settings.bond_blocks)
+        bd = acquire(Bonds, max(b, 1), self.particles.capacity, b > 0 and self.settings.bond_blocks,
+                     minimum=None if b else 64)        # none: the unbonded placeholder's class
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
         for key, default in self._BOND_DEFAULTS.items():
             shape = (b, 3) if key in self._BOND_VECTORS else (b,)

@@ -41,10 +41,24 @@ def field_record(cls):
     return cls
 
 
-def capacity_class(n: int, minimum: int = 64) -> int:
+# Smallest capacity class. Taichi compiles each kernel once per set of containers it is
+# given, and compiling is most of the cost of a small simulation (about 3 s for the serial
+# sweep's kernel alone, on this project's machine). With a floor of 1024 slots every
+# simulation of up to about 250 spheres draws the same classes from the pool, so a process
+# that runs many small ones in turn (a test suite, a parameter study) reuses their kernels:
+# four test files in one process built 2120 kernel instances with a floor of 64 and 1041
+# with 1024 (docs/measurements.md, session 24). A simulation of six spheres holds 0.66 MB of
+# fields instead of 68 kB; from 1024 spheres up nothing changes. The buffer of a
+# simulation without bonds keeps its 64 slots (one class for every size already).
+MIN_SLOTS = 1024
+
+
+def capacity_class(n: int, minimum: int | None = None) -> int:
     """Smallest size >= max(n, minimum) of the form 2^k x (1, 1.25, 1.5 or 1.75): classes close
     enough that a container wastes at most a quarter of its slots, few enough that the pool
-    (and the kernels compiled for it) is reused by simulations of similar sizes."""
+    (and the kernels compiled for it) is reused by simulations of similar sizes. `minimum`:
+    MIN_SLOTS unless given."""
+    minimum = MIN_SLOTS if minimum is None else minimum
     c = minimum
     while c < n:
         c *= 2
@@ -107,9 +121,10 @@ def _real_row():
 _pool: dict = {}
 
 
-def acquire(cls, capacity: int, *args):
-    """A container of `cls` with at least `capacity` slots, recycled when one is free."""
-    cap = capacity_class(capacity)
+def acquire(cls, capacity: int, *args, minimum: int | None = None):
+    """A container of `cls` with at least `capacity` slots, recycled when one is free (its
+    capacity class from `minimum` slots, MIN_SLOTS unless given)."""
+    cap = capacity_class(capacity, minimum)
     free = _pool.setdefault((cls, cap) + args, [])
     obj = free.pop() if free else cls(cap, *args)
     obj.reset()

@@ -273,8 +273,16 @@ def _bonded_pile(refit: bool):
     return sim, before, listed
 
 
+@pytest.fixture
+def small_classes(monkeypatch):
+    """Capacity classes from 64 slots (state.MIN_SLOTS is 1024), so that the buffers of a
+    pile of 48 spheres can shrink."""
+    from tcd import state
+    monkeypatch.setattr(state, "MIN_SLOTS", 64)
+
+
 @pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
-def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
+def test_bonding_refits_the_contact_buffer_without_changing_the_motion(small_classes):
     """Bonded pairs leave the contact list; the buffer shrinks to fit after the next step and
     the trajectory is the same, bit for bit, as with the old buffer."""
     fitted, before, listed_f = _bonded_pile(True)
@@ -292,7 +300,7 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion():
 
 
 @pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
-def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original():
+def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original(small_classes):
     """A bonded state loaded into a new simulation (a resumed run, a batch) starts with a
     buffer sized for an unbonded sample; it is refitted after the next step, as after
     create_bonds, and the motion is the original's bit for bit."""

@@ -89,7 +89,9 @@ def test_default_cell_size_minimises_the_pair_checks():
     assert items(c) < 0.25 * items(2 * (2 * r.min() + alert))
 
 
-def test_broad_phase_with_particles_outside_grid_and_growing_buffers():
+def test_broad_phase_with_particles_outside_grid_and_growing_buffers(monkeypatch):
+    from tcd import state
+    monkeypatch.setattr(state, "MIN_SLOTS", 64)     # capacity classes from 64 slots, not 1024
     r, x = random_cloud(300, 3, box=0.04)
     # grid covers only part of the cloud and buffers start tiny: results must not change
     sim = Simulation(r, x, settings=SolverSettings(alert_ratio=0.5),
@@ -101,6 +103,31 @@ def test_broad_phase_with_particles_outside_grid_and_growing_buffers():
     assert any("contacts" in e for e in sim.grow_events)
     assert any("grid" in e for e in sim.grow_events)
     assert any("neighbour pairs" in e for e in sim.grow_events)
+
+
+def test_small_simulations_share_their_fields_and_compiled_kernels():
+    """Simulations of up to a few hundred spheres draw the same capacity classes
+    (state.MIN_SLOTS): the second of two piles of different sizes gets the containers the first
+    handed back, and steps with the kernel instances compiled for the first."""
+    def pile(n, seed):
+        rng = np.random.default_rng(seed)
+        r = np.full(n, 0.002)
+        x = np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.02, 0.02, n),
+                             0.002 + 0.005 * np.arange(n)])     # the lowest on the floor
+        return Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                          domain=((-0.03, -0.03, 0.0), (0.03, 0.03, 0.6)))
+    names = ("particles", "wall_fields", "grid", "neighbours", "contacts", "bonds", "stats")
+    small = pile(6, 1)
+    small.step(2)
+    held = {name: getattr(small, name) for name in names}
+    compiled = len(sk.nlgs_serial._primal.compiled_kernels)
+    small.close()
+    larger = pile(100, 2)
+    for name in names:
+        assert getattr(larger, name) is held[name], name
+    larger.step(2)
+    assert larger.last.contacts > 0
+    assert len(sk.nlgs_serial._primal.compiled_kernels) == compiled
 
 
 def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
