@@ -65,6 +65,14 @@ def schedule_settings(name: str) -> dict:
 
 
 @pytest.fixture
+def small_classes(monkeypatch):
+    """Capacity classes from 64 slots instead of tcd.state.MIN_SLOTS (1024), for the tests
+    whose small simulations must outgrow their buffers or shrink them."""
+    from tcd import state
+    monkeypatch.setattr(state, "MIN_SLOTS", 64)
+
+
+@pytest.fixture
 def other_side(tmp_path, backend):
     """run(code): run `code` (Python, after `import tcd` and `tcd.init`, with tests/ on the
     path; its last printed line is JSON) in a child process on the other side of

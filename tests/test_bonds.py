@@ -273,14 +273,6 @@ def _bonded_pile(refit: bool):
     return sim, before, listed
 
 
-@pytest.fixture
-def small_classes(monkeypatch):
-    """Capacity classes from 64 slots (state.MIN_SLOTS is 1024), so that the buffers of a
-    pile of 48 spheres can shrink."""
-    from tcd import state
-    monkeypatch.setattr(state, "MIN_SLOTS", 64)
-
-
 @pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_bonding_refits_the_contact_buffer_without_changing_the_motion(small_classes):
     """Bonded pairs leave the contact list; the buffer shrinks to fit after the next step and

@@ -89,9 +89,7 @@ def test_default_cell_size_minimises_the_pair_checks():
     assert items(c) < 0.25 * items(2 * (2 * r.min() + alert))
 
 
-def test_broad_phase_with_particles_outside_grid_and_growing_buffers(monkeypatch):
-    from tcd import state
-    monkeypatch.setattr(state, "MIN_SLOTS", 64)     # capacity classes from 64 slots, not 1024
+def test_broad_phase_with_particles_outside_grid_and_growing_buffers(small_classes):
     r, x = random_cloud(300, 3, box=0.04)
     # grid covers only part of the cloud and buffers start tiny: results must not change
     sim = Simulation(r, x, settings=SolverSettings(alert_ratio=0.5),
