@@ -380,8 +380,7 @@ class Simulation:
         self.neighbours = acquire(Neighbours, 2 * cap, self.particles.capacity)
         self._neighbours_valid = False
         self.neighbour_builds = 0
-        # no bonds yet: the smallest buffer (64 slots; one class for every size, so no floor)
-        self.bonds = acquire(Bonds, 1, self.particles.capacity, False, minimum=64)
+        self.bonds = self._bond_buffer(0)
         self.colours = None
         self.partition = None
         self.stats = acquire(SolverStats, 1)
@@ -759,7 +758,7 @@ class Simulation:
         saved_bonds = self.bonds
         saved_contacts = self.contacts
         self.contacts = acquire(Contacts, saved_contacts.capacity, self.particles.capacity)
-        self.bonds = acquire(Bonds, 1, self.particles.capacity, False, minimum=64)
+        self.bonds = self._bond_buffer(0)
         self.alert = max(reach, 1e-300)
         saved_count = self.wall_fields.count[None]
         self.wall_fields.count[None] = 0
@@ -781,6 +780,13 @@ class Simulation:
                       "hk_t": 0.0, "broken_time": np.nan, "broken_pos": 0.0, "impulse_prev": 0.0}
     _BOND_VECTORS = ("impulse", "d_t", "hd_t", "hk_t", "broken_pos", "impulse_prev")
 
+    def _bond_buffer(self, b: int) -> Bonds:
+        """A bond buffer for `b` bonds from the pool. Without bonds, the smallest buffer: 64
+        slots, below state.MIN_SLOTS (one class for every size already, and a 2600-sphere
+        pour would otherwise hold 150 B per particle more)."""
+        return acquire(Bonds, max(b, 1), self.particles.capacity,
+                       b > 0 and self.settings.bond_blocks, minimum=None if b else 64)
+
     def _set_bond_arrays(self, a: dict) -> None:
         """Install a bond set given as arrays (missing state arrays take their defaults)."""
         b = len(a["i"])
@@ -788,8 +794,7 @@ class Simulation:
         # unbonded sample, or for a batch's histories) is refitted to what the step needed
         self._refit_contacts = b > 0
         release(self.bonds)
-        bd = acquire(Bonds, max(b, 1), self.particles.capacity, b > 0 and self.settings.bond_blocks,
-                     minimum=None if b else 64)        # none: the unbonded placeholder's class
+        bd = self._bond_buffer(b)
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
         for key, default in self._BOND_DEFAULTS.items():
             shape = (b, 3) if key in self._BOND_VECTORS else (b,)

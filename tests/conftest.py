@@ -64,6 +64,16 @@ def schedule_settings(name: str) -> dict:
     return {"schedule": name}
 
 
+def env_without_thread_settings(**extra) -> dict:
+    """This process's environment for a child, less TCD_CPU_THREADS and TCD_PARALLEL_LOOPS
+    (pytest_configure sets the first), plus `extra`."""
+    from tcd import backend as tcd_backend
+    env = {k: v for k, v in os.environ.items()
+           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
+    env.update(extra)
+    return env
+
+
 @pytest.fixture
 def small_classes(monkeypatch):
     """Capacity classes from 64 slots instead of tcd.state.MIN_SLOTS (1024), for the tests
@@ -100,9 +110,7 @@ def other_side(tmp_path, backend):
             tcd.init({arch!r}, {precision!r}, {init})
             assert backend.serial_loops() is {not inline_here}
         """) + textwrap.dedent(code))
-        env = {k: v for k, v in os.environ.items()
-               if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
-        env["PYTHONPATH"] = str(root)
+        env = env_without_thread_settings(PYTHONPATH=str(root))
         out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
                              timeout=900, env=env)
         assert out.returncode == 0, out.stderr[-3000:]

@@ -4,7 +4,6 @@ so the thread pool's side is a child process, and every number must match bit fo
 
 Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
 are checked before Taichi starts."""
-import os
 import pathlib
 import subprocess
 import sys
@@ -12,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from tcd import backend as tcd_backend
+from conftest import env_without_thread_settings
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -61,9 +60,7 @@ def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend, other_side):
 
 
 def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
-    env = {k: v for k, v in os.environ.items()
-           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
-    env.update(env_extra, PYTHONPATH=str(ROOT))
+    env = env_without_thread_settings(**env_extra, PYTHONPATH=str(ROOT))
     code = f"import tcd\nfrom tcd import backend\n{call}\nprint(backend.serial_loops())"
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=300, env=env)
