@@ -34,6 +34,8 @@ last sweep, after 300 sweeps; plain symmetric Gauss-Seidel, blocks of 20):
     4.15e-4; scale with separate normal and tangential levels 0.01 m 3.92e-4; stress 0.03 m
     4.49e-4 (600 sweeps: 2.49e-4 against 2.52e-4); iface 0.02 m 4.56e-4. Testing with the
     normal direction only on the sliding contacts (Petrov-Galerkin) changed nothing.
+  - friction 0.7 with the rotations locked (a diagnostic: inverse inertia zeroed; script not
+    shipped): no correction 5.55e-4, scale 0.02 m 1.75e-4, 0.01 m 1.48e-4.
   So a coarse level removes the frictionless bed's slow load redistribution, but with friction
   the slow part is elsewhere: 33 % of the active contacts slide, the active and sliding sets
   hardly change (about 20 contacts change state in 20 sweeps), and 72 % of what still changes
