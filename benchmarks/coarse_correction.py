@@ -53,7 +53,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
-from tcd import bench, contacts as ck, solver as sk  # noqa: E402
+import solver_convergence  # noqa: E402
+from tcd import bench, solver as sk  # noqa: E402
 from tcd.state import get  # noqa: E402
 
 def _symmetric_basis():
@@ -75,21 +76,12 @@ class Step:
         self.sim = bench.pour_setup(2600, 1, 1e-4)
 
     def prepare(self):
-        sim = self.sim
-        sim.load_state_dict(self.state)
-        sim.time = self.t
-        s = sim.settings
-        p, wl, bd = sim.particles, sim.wall_fields, sim.bonds
-        sim._move_walls(sim.time)
-        sim._build_contacts()
-        ct = sim.contacts
-        sk.predict(p, s.time_step, *s.gravity)
-        ck.contact_geometry(p, wl, ct, s.time_step, s.theta, sim.friction, 0.0)
+        ct = solver_convergence.begin_step(self.sim, self.state, self.t)
         if self.frictionless:
             ct.mu.fill(0.0)
             r, nrm = ct.impulse.to_numpy(), ct.normal.to_numpy()
             ct.impulse.from_numpy((r * nrm).sum(1)[:, None] * nrm)
-        sk.apply_warm_start(p, ct, bd)
+        sk.apply_warm_start(self.sim.particles, ct, self.sim.bonds)
 
     def sweeps(self, k):
         sim = self.sim
@@ -210,7 +202,6 @@ def correction(d, spacing, kind):
 
 
 def main():
-    import solver_convergence
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--state", default="/tmp/tcd_pour_state.pkl")
     ap.add_argument("--time", type=float, default=0.48)

@@ -42,25 +42,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 from tcd import bench  # noqa: E402
-from tcd import contacts as ck  # noqa: E402
 from tcd import solver as sk  # noqa: E402
-from solver_convergence import pour_state  # noqa: E402
+from solver_convergence import begin_step, pour_state  # noqa: E402
 
 def solve_capped(sim, state, t, k, acceleration):
     """Step from `state` through the solver with at most k sweeps; no integration after."""
     sim.settings = dataclasses.replace(sim.settings, max_sweeps=k, tolerance=1e-300,
                                        schedule="serial", acceleration=acceleration)
     sim.schedule = "serial"
-    sim.load_state_dict(state)
-    sim.time = t
+    ct = begin_step(sim, state, t)
     s = sim.settings
     p, wl, bd = sim.particles, sim.wall_fields, sim.bonds
-    sim._move_walls(sim.time)
-    sim._build_contacts()
-    ct = sim.contacts
-    sk.predict(p, s.time_step, *s.gravity)
-    ck.contact_geometry(p, wl, ct, s.time_step, s.theta, sim.friction,
-                        s.warm_start_extrapolation)
     sk.apply_warm_start(p, ct, bd)
     t0 = time.perf_counter()
     sk.nlgs_serial(p, wl, ct, bd, sim.stats, s.max_sweeps, s.tolerance, s.check_every,
