@@ -18,6 +18,8 @@ R += Q c, then R is projected on the friction cones. Bases (`--basis`), over a g
     trilinear hat of the node (one unknown per node: the local level of the force network);
   - stress: per node, a symmetric stress tensor sigma (6 unknowns), contact impulse
     (r_i + r_j)^2 N(x_c) sigma n (the inverse of the Love-Weber average);
+  - roll: scale, plus per node three tangential patterns R_n (e_a x n), a = x, y, z (the
+    contacts' share of a rotation of the node's neighbourhood);
   - iface: bodies grouped by grid cell (each wall its own group); one 3-vector per pair of
     groups in contact, spread equally over the contacts between them.
 `--frictionless` sets every contact's friction to zero before the step (a check that the
@@ -32,7 +34,7 @@ last sweep, after 300 sweeps; plain symmetric Gauss-Seidel, blocks of 20):
     after about 220 and 140 sweeps); stress 0.03 m 6.38e-4, 0.02 m 4.80e-4.
   - friction 0.7 (the benchmark's): no correction 4.52e-4; scale 0.02 m 4.31e-4, 0.01 m
     4.15e-4; scale with separate normal and tangential levels 0.01 m 3.92e-4; stress 0.03 m
-    4.49e-4 (600 sweeps: 2.49e-4 against 2.52e-4); iface 0.02 m 4.56e-4. Testing with the
+    4.49e-4 (600 sweeps: 2.49e-4 against 2.52e-4); iface 0.02 m 4.56e-4; roll 0.02 m 4.33e-4. Testing with the
     normal direction only on the sliding contacts (Petrov-Galerkin) changed nothing.
   - friction 0.7 with the rotations locked (a diagnostic: inverse inertia zeroed; script not
     shipped): no correction 5.55e-4, scale 0.02 m 1.75e-4, 0.01 m 1.48e-4.
@@ -147,12 +149,15 @@ def basis(d, spacing, kind, active, slide):
     f = np.clip((xc - lo) / ((hi - lo) / (nn - 1)), 0, nn - 1 - 1e-9)
     c0 = np.floor(f).astype(int)
     t = f - c0
-    per = 1 if kind == "scale" else 6
+    per = {"scale": 1, "roll": 4, "stress": 6}[kind]
     q = np.zeros((m, int(nn.prod()) * per, 3))
     rows = np.arange(m)
     if kind == "stress":
         other = np.where(part, rad[np.where(part, j, 0)], rad[i])
         pattern = ((rad[i] + other) ** 2)[:, None, None] * np.einsum("sab,cb->csa", SYM, nrm)
+    elif kind == "roll":         # the node's share, and R_n (e_a x n) for a = x, y, z
+        rn = (r * nrm).sum(1)
+        pattern = np.concatenate([r[:, None, :], rn[:, None, None] * np.cross(np.eye(3)[None, :, :], nrm[:, None, :])], 1)
     else:
         pattern = r[:, None, :]
     for dx in (0, 1):
@@ -205,7 +210,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--state", default="/tmp/tcd_pour_state.pkl")
     ap.add_argument("--time", type=float, default=0.48)
-    ap.add_argument("--basis", default="scale", choices=("scale", "stress", "iface"))
+    ap.add_argument("--basis", default="scale", choices=("scale", "stress", "iface", "roll"))
     ap.add_argument("--spacing", default="0.02,0.01")
     ap.add_argument("--frictionless", action="store_true")
     ap.add_argument("--block", type=int, default=20)
