@@ -30,8 +30,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 import tcd  # noqa: E402
 from tcd import bench  # noqa: E402
-from tcd import contacts as ck  # noqa: E402
-from tcd import solver as sk  # noqa: E402
 
 VARIANTS = (("serial, NNCG", dict(schedule="serial", acceleration="nncg")),
             ("serial, plain GS", dict(schedule="serial", acceleration="none")),
@@ -56,21 +54,13 @@ def pour_state(particles: int, t: float, path: str):
 
 
 def begin_step(sim, state, t):
-    """Load `state` at time t and do what `Simulation._step` does before the warm start of an
-    unbonded simulation: walls moved, contacts built, predictor, contact geometry. Returns the
-    contacts; the caller applies the warm start (`solver.apply_warm_start`) and solves."""
+    """Load `state` at time t and run the step up to its warm start (`Simulation._begin_step`).
+    Returns the contacts; the caller applies the warm start (`solver.apply_warm_start`) and
+    solves."""
     sim.load_state_dict(state)
     sim.time = t
-    s = sim.settings
-    p, wl = sim.particles, sim.wall_fields
-    sim._move_walls(sim.time)
-    sim._build_contacts()
-    ct = sim.contacts
-    sk.predict(p, s.time_step, *s.gravity)
-    ck.contact_geometry(p, wl, ct, s.time_step, s.theta, sim.friction,
-                        s.warm_start_extrapolation)
-    return ct
-
+    sim._begin_step()
+    return sim.contacts
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -493,25 +493,37 @@ class Simulation:
             self._step()
         return self.last
 
+    def _bond_law_args(self) -> tuple:
+        """The bond law's arguments of solver.bonds_prepare and bonds_finish."""
+        law = self.bond_law
+        mode = sk.MODE_PAPER if law.mode == "paper" else sk.MODE_BURGERS
+        return (mode, law.maxwell_stiffness, law.maxwell_viscosity, law.kelvin_stiffness,
+                law.kelvin_viscosity, law.tangent_factor)
+
+    def _begin_step(self) -> None:
+        """The step up to its warm start: walls moved to the step's start, contacts built, the
+        predictor, the bonds' and the contacts' terms of the step (benchmarks/ start from here to
+        solve one step in their own ways)."""
+        s = self.settings
+        h, theta = s.time_step, s.theta
+        p, wl, bd = self.particles, self.wall_fields, self.bonds
+        self._move_walls(self.time)
+        self._build_contacts()
+        sk.predict(p, h, *s.gravity)
+        extrap = s.warm_start_extrapolation
+        if bd.total[None] > 0:
+            sk.bonds_prepare(p, bd, h, theta, self.time + h, *self._bond_law_args(), extrap)
+            if s.bond_blocks:
+                sk.bonds_factor(p, bd)
+        ck.contact_geometry(p, wl, self.contacts, h, theta, self.friction, extrap)
+
     def _step(self) -> None:
         s = self.settings
         h, theta = s.time_step, s.theta
         t_end = self.time + h
         p, wl, bd = self.particles, self.wall_fields, self.bonds
-        self._move_walls(self.time)
-        self._build_contacts()
+        self._begin_step()
         ct = self.contacts
-        sk.predict(p, h, *s.gravity)
-        law = self.bond_law
-        mode = sk.MODE_PAPER if law.mode == "paper" else sk.MODE_BURGERS
-        law_args = (mode, law.maxwell_stiffness, law.maxwell_viscosity, law.kelvin_stiffness,
-                    law.kelvin_viscosity, law.tangent_factor)
-        extrap = s.warm_start_extrapolation
-        if bd.total[None] > 0:
-            sk.bonds_prepare(p, bd, h, theta, t_end, *law_args, extrap)
-            if s.bond_blocks:
-                sk.bonds_factor(p, bd)
-        ck.contact_geometry(p, wl, ct, h, theta, self.friction, extrap)
         if self.schedule == "coloured":
             ncol, items = self._colour()
             self._by_colours(ncol, sk.warm_start_colours, p, ct, bd, self.colours)
@@ -528,7 +540,8 @@ class Simulation:
         else:
             colours = self._solve_coloured(ncol, items)
         if bd.total[None] > 0:
-            sk.bonds_finish(p, wl, bd, h, theta, t_end, *law_args, law.yield_stress)
+            sk.bonds_finish(p, wl, bd, h, theta, t_end, *self._bond_law_args(),
+                            self.bond_law.yield_stress)
         sk.integrate(p, h, theta)
         slop = s.overlap_slop * 2.0 * self.r_min
         if s.projection_passes > 0 and self.schedule == "coloured":
