@@ -85,10 +85,11 @@ class Step:
             ct.impulse.from_numpy((r * nrm).sum(1)[:, None] * nrm)
         sk.apply_warm_start(self.sim.particles, ct, self.sim.bonds)
 
-    def sweeps(self, k):
+    def sweeps(self, k, accel=0):
+        """k symmetric sweeps; accel 1: with NNCG momentum (restarted at each call)."""
         sim = self.sim
         sk.nlgs_serial(sim.particles, sim.wall_fields, sim.contacts, sim.bonds, sim.stats, k,
-                       1e-300, 1, 1, 0, 0, 0)
+                       1e-300, 1, 1, accel, 0, 0)
         return float(sim.stats.residual[None])
 
     def arrays(self):

@@ -16,7 +16,7 @@ n + mu t_hat, R_t = mu R_n t_hat, test direction n) and solves the nonsymmetric 
 GMRES(k) from zero, right-preconditioned by the contacts' diagonal Delassus blocks.
 
     python benchmarks/krylov_correction.py [--mode cg|gmres] [--block 20] [--cg 0,10,20]
-        [--sweeps 300] [--frictionless]
+        [--sweeps 300] [--frictionless] [--nncg]
 
 Session 26 (this 2-core CPU, f64; residual = tcd's measure after the block's last sweep;
 "work" = sweeps + Krylov iterations, one product by W costing about one sweep):
@@ -27,7 +27,7 @@ Session 26 (this 2-core CPU, f64; residual = tcd's measure after the block's las
   - friction 0.7, gmres, plain symmetric sweeps: 1e-4 after about 1000 work (gmres 40 per
     block of 40: 1.13e-4 at 920, 8.87e-5 at 1080), against about 1830 plain sweeps (1.73e-4
     at 1200); gmres 10 per block of 10 or 20 stalls at 1.4e-4.
-  - the same with NNCG sweeps (the shipped default; driver in the session-26 notes): 1e-4
+  - the same with NNCG sweeps (`--nncg`, the shipped default): 1e-4
     after about 850 work (gmres 40 / block 40) or 940 (gmres 20 / block 40), against about
     1300 for NNCG alone (1.17e-4 at 1200): 1.3-1.5 times fewer passes.
   Each correction changes the impulses by 0.2-9 % (sum |dR| / sum |R|) and flips 6-147
@@ -171,6 +171,7 @@ def main():
     ap.add_argument("--sweeps", type=int, default=300)
     ap.add_argument("--frictionless", action="store_true")
     ap.add_argument("--mode", default="cg", choices=("cg", "gmres"))
+    ap.add_argument("--nncg", action="store_true", help="NNCG sweeps instead of plain ones")
     a = ap.parse_args()
     tcd.init("cpu", "f64")
     step = Step(solver_convergence.pour_state(2600, a.time, a.state), a.time, a.frictionless)
@@ -180,7 +181,7 @@ def main():
         done, work, line = 0, 0, []
         while done < a.sweeps:
             k = min(a.block, a.sweeps - done)
-            residual = step.sweeps(k)
+            residual = step.sweeps(k, 1 if a.nncg else 0)
             done += k
             work += k
             line.append(f"{done}/{work}:{residual:.2e}")
