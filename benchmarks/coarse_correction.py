@@ -102,20 +102,26 @@ class Step:
 
     def write_back(self, d, rnew):
         ct, p = self.sim.contacts, self.sim.particles
-        i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
-        v, w = d["v"].copy(), d["w"].copy()
-        dr = rnew - d["r"]
-        c = np.cross(nrm, dr)
-        part = j < n
-        jp = j[part]
-        np.add.at(v, i, -dr * d["im"][i][:, None])
-        np.add.at(w, i, -(d["ii"][i] * d["rad"][i])[:, None] * c)
-        np.add.at(v, jp, dr[part] * d["im"][jp][:, None])
-        np.add.at(w, jp, -(d["ii"][jp] * d["rad"][jp])[:, None] * c[part])
-        for field, rows in ((ct.impulse, rnew), (p.v, v), (p.w, w)):
+        dv, dw = body_response(d, rnew - d["r"])
+        for field, rows in ((ct.impulse, rnew), (p.v, d["v"] + dv), (p.w, d["w"] + dw)):
             full = field.to_numpy()
             full[: len(rows)] = rows
             field.from_numpy(full)
+
+
+def body_response(d, dr):
+    """The bodies' velocity and spin changes M^-1 H^T dR for item impulse changes dr (a wall
+    side, j >= particles, takes nothing)."""
+    i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
+    dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
+    c = np.cross(nrm, dr)
+    part = j < n
+    jp = j[part]
+    np.add.at(dv, i, -dr * d["im"][i][:, None])
+    np.add.at(dw, i, -(d["ii"][i] * d["rad"][i])[:, None] * c)
+    np.add.at(dv, jp, dr[part] * d["im"][jp][:, None])
+    np.add.at(dw, jp, -(d["ii"][jp] * d["rad"][jp])[:, None] * c[part])
+    return dv, dw
 
 
 def relative_velocity(d):

@@ -48,20 +48,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 import solver_convergence  # noqa: E402
-from coarse_correction import Step, relative_velocity  # noqa: E402
+from coarse_correction import Step, body_response, relative_velocity  # noqa: E402
 
 
-def body_response(d, dr):
-    i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
-    dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
-    c = np.cross(nrm, dr)
-    part = j < n
-    jp = j[part]
-    np.add.at(dv, i, -dr * d["im"][i][:, None])
-    np.add.at(dw, i, -(d["ii"][i] * d["rad"][i])[:, None] * c)
-    np.add.at(dv, jp, dr[part] * d["im"][jp][:, None])
-    np.add.at(dw, jp, -(d["ii"][jp] * d["rad"][jp])[:, None] * c[part])
-    return dv, dw
+def gmres(aop, b, iters):
+    """GMRES(iters) from zero on aop(y) = b (arrays of any shape, Euclidean products)."""
+    beta = np.sqrt((b * b).sum())
+    vs, hh = [b / beta], np.zeros((iters + 1, iters))
+    for k in range(iters):
+        w = aop(vs[k])
+        for l in range(k + 1):
+            hh[l, k] = (w * vs[l]).sum()
+            w = w - hh[l, k] * vs[l]
+        hh[k + 1, k] = np.sqrt((w * w).sum())
+        vs.append(w / max(hh[k + 1, k], 1e-300))
+    e1 = np.zeros(iters + 1)
+    e1[0] = beta
+    return sum(c * v for c, v in zip(np.linalg.lstsq(hh, e1, rcond=None)[0], vs[:iters]))
 
 
 def contact_velocity(d, dv, dw):
@@ -130,20 +133,7 @@ def correction(d, iters, mode="cg"):
         def aop(y):                       # right-preconditioned operator
             return proj(contact_velocity(d, *body_response(d, trial(proj(prec(y))))))
 
-        b = -g
-        beta = np.sqrt((b * b).sum())
-        vs, hh = [b / beta], np.zeros((iters + 1, iters))
-        for k in range(iters):
-            w = aop(vs[k])
-            for l in range(k + 1):
-                hh[l, k] = (w * vs[l]).sum()
-                w = w - hh[l, k] * vs[l]
-            hh[k + 1, k] = np.sqrt((w * w).sum())
-            vs.append(w / max(hh[k + 1, k], 1e-300))
-        e1 = np.zeros(iters + 1)
-        e1[0] = beta
-        yk = np.linalg.lstsq(hh, e1, rcond=None)[0]
-        y = sum(c * v for c, v in zip(yk, vs[:iters]))
+        y = gmres(aop, -g, iters)
         return project(d, d["r"] + trial(proj(prec(y))))
     x = np.zeros_like(g)
     res = -g

@@ -38,8 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 from tcd import solver as sk  # noqa: E402
 from tcd.state import get  # noqa: E402
-from krylov_correction import body_response, contact_velocity, project, statuses  # noqa: E402
-from coarse_correction import relative_velocity  # noqa: E402
+from krylov_correction import contact_velocity, gmres, project, statuses  # noqa: E402
+from coarse_correction import body_response, relative_velocity  # noqa: E402
 
 
 def setup(sample, tolerance):
@@ -130,18 +130,7 @@ def correction(sim, iters):
     g[:m] += d["rhs"][:, None] * nrm[:m]
     g[m:] += b["rhs_n"][intact][:, None] * nrm[m:] + b["rhs_t"][intact]
     g = proj(g)
-    beta = np.sqrt((g * g).sum())
-    vs, hh = [-g / beta], np.zeros((iters + 1, iters))
-    for k in range(iters):
-        w = aop(vs[k])
-        for l in range(k + 1):
-            hh[l, k] = (w * vs[l]).sum()
-            w = w - hh[l, k] * vs[l]
-        hh[k + 1, k] = np.sqrt((w * w).sum())
-        vs.append(w / max(hh[k + 1, k], 1e-300))
-    e1 = np.zeros(iters + 1)
-    e1[0] = beta
-    y = sum(c * v for c, v in zip(np.linalg.lstsq(hh, e1, rcond=None)[0], vs[:iters]))
+    y = gmres(aop, -g, iters)
     dx = trial(proj(prec(y)))
     rc = project(d, d["r"] + dx[:m])
     dr = np.concatenate([rc - d["r"], dx[m:]])
