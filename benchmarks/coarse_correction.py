@@ -93,44 +93,79 @@ class Step:
         return float(sim.stats.residual[None])
 
     def arrays(self):
-        ct, p = self.sim.contacts, self.sim.particles
-        m, n = int(ct.total[None]), self.sim.n
-        return dict(i=get(ct.i, m), j=get(ct.j, m), nrm=get(ct.normal, m), r=get(ct.impulse, m),
-                    rhs=get(ct.rhs, m), mu=get(ct.mu, m), x=get(p.x, n), v=get(p.v, n),
-                    w=get(p.w, n), rad=get(p.radius, n), im=get(p.inv_mass, n),
-                    ii=get(p.inv_inertia, n), wallv=self.sim.wall_fields.velocity.to_numpy())
+        return contact_arrays(self.sim)
 
     def write_back(self, d, rnew):
         ct, p = self.sim.contacts, self.sim.particles
         dv, dw = body_response(d, rnew - d["r"])
         for field, rows in ((ct.impulse, rnew), (p.v, d["v"] + dv), (p.w, d["w"] + dw)):
-            full = field.to_numpy()
-            full[: len(rows)] = rows
-            field.from_numpy(full)
+            write_rows(field, rows)
 
 
-def body_response(d, dr):
+# --- shared by the NumPy solver prototypes (coarse_correction, krylov_*, jacobi_shear,
+# pour_reference): the contacts and bodies as arrays, and H, H^T and the Delassus diagonal
+def contact_arrays(sim):
+    """The contacts and the bodies of `sim` as NumPy arrays (the prototypes' `d`)."""
+    ct, p = sim.contacts, sim.particles
+    m, n = int(ct.total[None]), sim.n
+    return dict(i=get(ct.i, m), j=get(ct.j, m), nrm=get(ct.normal, m), r=get(ct.impulse, m),
+                rhs=get(ct.rhs, m), mu=get(ct.mu, m), x=get(p.x, n), v=get(p.v, n),
+                w=get(p.w, n), rad=get(p.radius, n), im=get(p.inv_mass, n),
+                ii=get(p.inv_inertia, n), wallv=sim.wall_fields.velocity.to_numpy())
+
+
+def write_rows(field, rows):
+    """Write `rows` over the first rows of a Taichi field, keeping the rest."""
+    full = field.to_numpy()
+    full[: len(rows)] = rows
+    field.from_numpy(full)
+
+
+def body_response(d, dr, im=None, spin=None):
     """The bodies' velocity and spin changes M^-1 H^T dR for item impulse changes dr (a wall
-    side, j >= particles, takes nothing)."""
+    side, j >= particles, takes nothing). `im`, `spin`: per body weights instead of the
+    inverse mass and inverse inertia times radius (ones: the resultant impulse and moment /
+    radius)."""
     i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
+    im = d["im"] if im is None else im
+    spin = d["ii"] * d["rad"] if spin is None else spin
     dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
     c = np.cross(nrm, dr)
     part = j < n
     jp = j[part]
-    np.add.at(dv, i, -dr * d["im"][i][:, None])
-    np.add.at(dw, i, -(d["ii"][i] * d["rad"][i])[:, None] * c)
-    np.add.at(dv, jp, dr[part] * d["im"][jp][:, None])
-    np.add.at(dw, jp, -(d["ii"][jp] * d["rad"][jp])[:, None] * c[part])
+    np.add.at(dv, i, -dr * im[i][:, None])
+    np.add.at(dw, i, -spin[i][:, None] * c)
+    np.add.at(dv, jp, dr[part] * im[jp][:, None])
+    np.add.at(dw, jp, -spin[jp][:, None] * c[part])
     return dv, dw
 
 
-def relative_velocity(d):
+def velocity_jump(d, v, w, wallv=None):
+    """H (v, w): each item's relative velocity of its j side over its i side at the contact
+    point, for body velocities v and spins w; a wall side moves at wallv (none: at rest)."""
     i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
     part = j < n
     jj = np.where(part, j, 0)
-    vj = np.where(part[:, None], d["v"][jj], d["wallv"][np.where(part, 0, j - n)])
-    spin = d["rad"][i][:, None] * d["w"][i] + np.where(part[:, None], d["rad"][jj][:, None] * d["w"][jj], 0.0)
-    return vj - d["v"][i] - np.cross(spin, nrm)
+    vj = np.where(part[:, None], v[jj], 0.0 if wallv is None else wallv[np.where(part, 0, j - n)])
+    spin = d["rad"][i][:, None] * w[i] + np.where(part[:, None], d["rad"][jj][:, None] * w[jj], 0.0)
+    return vj - v[i] - np.cross(spin, nrm)
+
+
+def relative_velocity(d):
+    return velocity_jump(d, d["v"], d["w"], d["wallv"])
+
+
+def delassus_diagonal(d, im=None, ii=None):
+    """The items' Delassus diagonal in their frames, (normal, tangential), for the bodies'
+    inverse masses and inertias (or `im`, `ii` in their place)."""
+    i, j, n = d["i"], d["j"], len(d["x"])
+    im = d["im"] if im is None else im
+    ii = d["ii"] if ii is None else ii
+    part = j < n
+    jj = np.where(part, j, 0)
+    wnn = im[i] + np.where(part, im[jj], 0.0)
+    wtt = wnn + ii[i] * d["rad"][i] ** 2 + np.where(part, ii[jj] * d["rad"][jj] ** 2, 0.0)
+    return wnn, wtt
 
 
 def basis(d, spacing, kind, active, slide):

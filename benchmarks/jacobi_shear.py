@@ -46,7 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 from tcd import solver as sk  # noqa: E402
 import krylov_shear as ks  # noqa: E402
-from coarse_correction import body_response, relative_velocity  # noqa: E402
+from coarse_correction import body_response, delassus_diagonal, relative_velocity  # noqa: E402
+from solver_convergence import begin_step  # noqa: E402
 
 MARKS = (10, 50, 100, 200, 500, 1000, 2000)
 
@@ -69,10 +70,7 @@ class Problem:
 
     def start(self):
         sim = self.sim
-        sim.load_state_dict(self.state)
-        sim.time = self.t
-        sim._begin_step()
-        sk.apply_warm_start(sim.particles, sim.contacts, sim.bonds)
+        sk.apply_warm_start(sim.particles, begin_step(sim, self.state, self.t), sim.bonds)
         return ks.arrays(sim)
 
     def gauss_seidel(self, k):
@@ -103,8 +101,7 @@ class Problem:
                 np.add.at(count, jj[active & part], 1)
                 count = np.maximum(count, 1)
             im, ii = d["im"] * count, d["ii"] * count
-            wnn = im[i] + np.where(part, im[jj], 0.0)
-            wtt = wnn + ii[i] * d["rad"][i] ** 2 + np.where(part, ii[jj] * d["rad"][jj] ** 2, 0.0)
+            wnn, wtt = delassus_diagonal(e, im, ii)
             res = u + self.rhs
             resn = (res * nrm).sum(1) + self.cn * rn
             rt = r - rn[:, None] * nrm

@@ -48,7 +48,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 import solver_convergence  # noqa: E402
-from coarse_correction import Step, body_response, relative_velocity  # noqa: E402
+from coarse_correction import (Step, body_response, delassus_diagonal, relative_velocity,  # noqa: E402
+                               velocity_jump)
 
 
 def gmres(aop, b, iters):
@@ -65,15 +66,6 @@ def gmres(aop, b, iters):
     e1 = np.zeros(iters + 1)
     e1[0] = beta
     return sum(c * v for c, v in zip(np.linalg.lstsq(hh, e1, rcond=None)[0], vs[:iters]))
-
-
-def contact_velocity(d, dv, dw):
-    i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
-    part = j < n
-    jj = np.where(part, j, 0)
-    vj = np.where(part[:, None], dv[jj], 0.0)
-    spin = d["rad"][i][:, None] * dw[i] + np.where(part[:, None], d["rad"][jj][:, None] * dw[jj], 0.0)
-    return vj - dv[i] - np.cross(spin, nrm)
 
 
 def statuses(d, slack=1e-9):
@@ -95,7 +87,7 @@ def project(d, r):
 
 
 def correction(d, iters, mode="cg"):
-    nrm, n = d["nrm"], len(d["x"])
+    nrm = d["nrm"]
     active, slide = statuses(d)
     stick = active & ~slide
 
@@ -107,13 +99,9 @@ def correction(d, iters, mode="cg"):
         return out
 
     def op(x):
-        return proj(contact_velocity(d, *body_response(d, x)))
+        return proj(velocity_jump(d, *body_response(d, x)))
 
-    i, j = d["i"], d["j"]
-    part = j < n
-    jj = np.where(part, j, 0)
-    wnn = d["im"][i] + np.where(part, d["im"][jj], 0.0)
-    wtt = wnn + d["ii"][i] * d["rad"][i] ** 2 + np.where(part, d["ii"][jj] * d["rad"][jj] ** 2, 0.0)
+    wnn, wtt = delassus_diagonal(d)
 
     def prec(x):
         xn = (x * nrm).sum(1)
@@ -131,7 +119,7 @@ def correction(d, iters, mode="cg"):
             return x + (x * nrm).sum(1)[:, None] * lift
 
         def aop(y):                       # right-preconditioned operator
-            return proj(contact_velocity(d, *body_response(d, trial(proj(prec(y))))))
+            return proj(velocity_jump(d, *body_response(d, trial(proj(prec(y))))))
 
         y = gmres(aop, -g, iters)
         return project(d, d["r"] + trial(proj(prec(y))))

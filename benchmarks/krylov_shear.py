@@ -38,8 +38,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 from tcd import solver as sk  # noqa: E402
 from tcd.state import get  # noqa: E402
-from krylov_correction import contact_velocity, gmres, project, statuses  # noqa: E402
-from coarse_correction import body_response, relative_velocity  # noqa: E402
+from krylov_correction import gmres, project, statuses  # noqa: E402
+from coarse_correction import (body_response, contact_arrays, delassus_diagonal,  # noqa: E402
+                               relative_velocity, velocity_jump, write_rows)
+from solver_convergence import begin_step  # noqa: E402
 
 
 def setup(sample, tolerance):
@@ -53,16 +55,13 @@ def setup(sample, tolerance):
 
 
 def arrays(sim):
-    ct, p, bd = sim.contacts, sim.particles, sim.bonds
-    m, n, nb = int(ct.total[None]), sim.n, int(bd.total[None])
-    d = dict(i=get(ct.i, m), j=get(ct.j, m), nrm=get(ct.normal, m), r=get(ct.impulse, m),
-             rhs=get(ct.rhs, m), mu=get(ct.mu, m), x=get(p.x, n), v=get(p.v, n), w=get(p.w, n),
-             rad=get(p.radius, n), im=get(p.inv_mass, n), ii=get(p.inv_inertia, n),
-             wallv=sim.wall_fields.velocity.to_numpy())
+    """`coarse_correction.contact_arrays`, and the bonds' arrays."""
+    bd = sim.bonds
+    nb = int(bd.total[None])
     b = dict(i=get(bd.i, nb), j=get(bd.j, nb), nrm=get(bd.normal, nb), r=get(bd.impulse, nb),
              cn=get(bd.cn, nb), ct=get(bd.ct, nb), rhs_n=get(bd.rhs_n, nb),
              rhs_t=get(bd.rhs_t, nb), state=get(bd.state, nb))
-    return d, b
+    return contact_arrays(sim), b
 
 
 def as_items(d, b, intact):
@@ -77,12 +76,10 @@ def correction(sim, iters):
     d, b = arrays(sim)
     m = len(d["i"])
     intact = b["state"] == 0
-    nbi = int(intact.sum())
     e = as_items(d, b, intact)
     nrm = e["nrm"]
     active, slide = statuses(d)
     stick = active & ~slide
-    n = len(d["x"])
     bn, bt = b["cn"][intact], b["ct"][intact]
 
     def proj(x):
@@ -100,11 +97,7 @@ def correction(sim, iters):
         out[m:] = bn[:, None] * xn[:, None] * nrm[m:] + bt[:, None] * (xb - xn[:, None] * nrm[m:])
         return out
 
-    i, j = e["i"], e["j"]
-    part = j < n
-    jj = np.where(part, j, 0)
-    wnn = d["im"][i] + np.where(part, d["im"][jj], 0.0)
-    wtt = wnn + d["ii"][i] * d["rad"][i] ** 2 + np.where(part, d["ii"][jj] * d["rad"][jj] ** 2, 0.0)
+    wnn, wtt = delassus_diagonal(e)
     wnn[m:] += bn
     wtt[m:] += bt
 
@@ -123,7 +116,7 @@ def correction(sim, iters):
 
     def aop(y):
         x = trial(proj(prec(y)))
-        return proj(contact_velocity(e, *body_response(e, x)) + compliance(x))
+        return proj(velocity_jump(e, *body_response(e, x)) + compliance(x))
 
     u = relative_velocity(e)
     g = u + compliance(e["r"])
@@ -136,13 +129,10 @@ def correction(sim, iters):
     dr = np.concatenate([rc - d["r"], dx[m:]])
     dv, dw = body_response(e, dr)
     ct, p, bd = sim.contacts, sim.particles, sim.bonds
-    full = bd.impulse.to_numpy()
-    full[: len(b["r"])][intact] += dx[m:]
-    bd.impulse.from_numpy(full)
-    for field, rows in ((ct.impulse, rc), (p.v, d["v"] + dv), (p.w, d["w"] + dw)):
-        full = field.to_numpy()
-        full[: len(rows)] = rows
-        field.from_numpy(full)
+    rb = b["r"].copy()
+    rb[intact] += dx[m:]
+    for field, rows in ((bd.impulse, rb), (ct.impulse, rc), (p.v, d["v"] + dv), (p.w, d["w"] + dw)):
+        write_rows(field, rows)
     return np.abs(dr).sum() / max(np.abs(e["r"]).sum(), 1e-300)
 
 
@@ -164,11 +154,9 @@ def main():
     sim.step()
     print(f"step {a.steps + 1} as run: {sim.last.sweeps} sweeps, residual {sim.last.residual:.2e}, "
           f"{sim.last.contacts} contacts", flush=True)
-    p, wl, ct, bd = sim.particles, sim.wall_fields, sim.contacts, sim.bonds
+    p, wl, bd = sim.particles, sim.wall_fields, sim.bonds
     for iters in [int(s) for s in a.gmres.split(",")]:
-        sim.load_state_dict(state)
-        sim.time = t
-        sim._begin_step()
+        ct = begin_step(sim, state, t)
         sk.apply_warm_start(p, ct, bd)
         done, work, line, t0 = 0, 0, [], time.perf_counter()
         while done < a.sweeps:

@@ -35,20 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tcd  # noqa: E402
 import solver_convergence  # noqa: E402
-from coarse_correction import Step, body_response  # noqa: E402
+from coarse_correction import Step, body_response, delassus_diagonal  # noqa: E402
 
 
-def resultants(d, r):
-    """Each particle's resultant contact impulse and moment / radius."""
-    i, j, nrm, n = d["i"], d["j"], d["nrm"], len(d["x"])
-    f, t = np.zeros((n, 3)), np.zeros((n, 3))
-    part = j < n
-    c = np.cross(nrm, r)
-    np.add.at(f, i, -r)
-    np.add.at(t, i, -c)
-    np.add.at(f, j[part], r[part])
-    np.add.at(t, j[part], -c[part])
-    return f, t
+def resultants(d):
+    """Each particle's resultant contact impulse and moment / radius (H^T R, unweighted)."""
+    ones = np.ones(len(d["x"]))
+    return body_response(d, d["r"], ones, ones)
 
 
 def drift(step, marks=(10, 100, 300, 1000, 3000)):
@@ -66,20 +59,15 @@ def drift(step, marks=(10, 100, 300, 1000, 3000)):
         d1 = step.arrays()
         dr = d1["r"] - d0["r"]
         dv, dw = body_response(d0, dr)
-        n = len(d0["x"])
         mass = 1.0 / d0["im"]
         inertia = np.where(d0["ii"] > 0, 1.0 / np.maximum(d0["ii"], 1e-300), 0.0)
         moved = (mass[:, None] * dv**2).sum() + (inertia[:, None] * dw**2).sum()
-        i, j, nrm = d0["i"], d0["j"], d0["nrm"]
-        part = j < n
-        jj = np.where(part, j, 0)
-        wnn = d0["im"][i] + np.where(part, d0["im"][jj], 0.0)
-        wtt = (wnn + d0["ii"][i] * d0["rad"][i] ** 2
-               + np.where(part, d0["ii"][jj] * d0["rad"][jj] ** 2, 0.0))
+        nrm = d0["nrm"]
+        wnn, wtt = delassus_diagonal(d0)
         drn = (dr * nrm).sum(1)
         diag = (wnn * drn**2 + wtt * ((dr - drn[:, None] * nrm) ** 2).sum(1)).sum()
-        f0, t0 = resultants(d0, d0["r"])
-        f1, t1 = resultants(d1, d1["r"])
+        f0, t0 = resultants(d0)
+        f1, t1 = resultants(d1)
         res = ((np.linalg.norm(f1 - f0, axis=1) + np.linalg.norm(t1 - t0, axis=1)).sum()
                / (np.linalg.norm(f1, axis=1) + np.linalg.norm(t1, axis=1)).sum())
         print(f"after {k} sweeps, over 2: impulses {np.abs(dr).sum() / np.abs(d1['r']).sum():.2e}, "
