@@ -81,7 +81,7 @@ class Progress:
             rate = (step - self.first) / max(now - self.t0, 1e-9)
             left = (self.total - step) / rate if rate > 0 else float("nan")
             print(f"[tcd] {self.label}: step {step}/{self.total} t={sim_time:.4f} s "
-                  f"{rate:.1f} steps/s, at most {left / 60:.1f} min left {extra}", file=sys.stderr, flush=True)
+                  f"{rate:.1f} steps/s, at this rate at most {left / 60:.1f} min left {extra}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
