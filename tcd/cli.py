@@ -78,8 +78,12 @@ def _flatten(data, prefix: str = "") -> list[tuple[str, object]]:
         if isinstance(value, dict):
             rows += _flatten(value, f"{name}.")
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-            for k, item in enumerate(value):      # one row per item (e.g. the benchmarks' phases)
-                rows.append((f"{name}[{k}]", "; ".join(f"{a}={_cell(b)}" for a, b in item.items())))
+            for k, item in enumerate(value):      # one row per flat item (e.g. the benchmarks' phases)
+                if any(isinstance(b, dict) or (isinstance(b, list) and b and isinstance(b[0], dict))
+                       for b in item.values()):   # nested (e.g. a run's samples): dotted rows
+                    rows += _flatten(item, f"{name}[{k}].")
+                else:
+                    rows.append((f"{name}[{k}]", "; ".join(f"{a}={_cell(b)}" for a, b in item.items())))
         else:
             rows.append((name, value))
     return rows

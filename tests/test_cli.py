@@ -317,6 +317,22 @@ def test_bench_table_prints_one_row_per_phase(stub, capsys):
     assert any(l.startswith("phases[1]") and "mean_sweeps=900" in l for l in lines)
 
 
+def test_table_flattens_nested_items_into_dotted_rows():
+    """A run's summary holds a list of samples, each with nested stages: every number gets a row
+    of its own, written as a number (not the repr of a nested dict or of a NumPy scalar)."""
+    import numpy as np
+    from tcd.cli import format_table
+    table = format_table({"samples": [{"seed": 2, "stages": {"0:prepare": {
+        "coordination_number": np.float64(5.310910022195663), "layer_heights_mm": [55.78, 64.22]}},
+        "walls": [{"name": "top plate", "friction": 0.3}]}]})
+    rows = dict(line.split(None, 1) for line in table.splitlines())
+    assert rows["samples[0].seed"] == "2"
+    assert rows["samples[0].stages.0:prepare.coordination_number"] == "5.31091"
+    assert rows["samples[0].stages.0:prepare.layer_heights_mm"] == "55.78, 64.22"
+    assert rows["samples[0].walls[0]"] == "name=top plate; friction=0.3"
+    assert "np.float64" not in table and "{" not in table
+
+
 def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backend, monkeypatch):
     arch, precision = backend
     states = tmp_path / "states.h5"
