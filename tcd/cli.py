@@ -71,17 +71,21 @@ def _existing_results(out_dir: Path) -> list[Path]:
     return found
 
 
+def _is_records(value) -> bool:
+    """A non-empty list of dicts (a run's samples, a benchmark's phases, a phase's walls)."""
+    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
+
+
 def _flatten(data, prefix: str = "") -> list[tuple[str, object]]:
     rows = []
     for key, value in data.items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
             rows += _flatten(value, f"{name}.")
-        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        elif _is_records(value):
             for k, item in enumerate(value):      # one row per flat item (e.g. the benchmarks' phases)
-                if any(isinstance(b, dict) or (isinstance(b, list) and b and isinstance(b[0], dict))
-                       for b in item.values()):   # nested (e.g. a run's samples): dotted rows
-                    rows += _flatten(item, f"{name}[{k}].")
+                if any(isinstance(b, dict) or _is_records(b) for b in item.values()):
+                    rows += _flatten(item, f"{name}[{k}].")   # nested (e.g. a run's samples)
                 else:
                     rows.append((f"{name}[{k}]", "; ".join(f"{a}={_cell(b)}" for a, b in item.items())))
         else:
