@@ -3,6 +3,10 @@
 the experiments and the relative errors of the mean. Nothing is recomputed by a simulation.
 
     python benchmarks/study_table.py runs/leutner_shear
+    python benchmarks/study_table.py runs/seeds1-3 runs/seeds4-5    # one study split by --seeds
+
+Several run directories (the parts of one study, `tcd run --seeds`) are merged as `tcd figures`
+merges them: each seed once, the same scenario, the mean and std over all their samples.
 
 Columns: seed, particles, peak stress and its displacement (smoothed curve, the run's window),
 residual stress at the end, bonds broken (tension + shear) of all bonds, the share of the broken
@@ -53,12 +57,24 @@ HEAD = ["seed", "particles", "peak τ (MPa)", "at d (mm)", "τ at 2.5 mm (MPa)",
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", help="a finished run directory (with summary.json)")
+    ap.add_argument("run", nargs="+", help="a finished run directory (with summary.json); "
+                    "several: the parts of one study")
     args = ap.parse_args(argv)
-    path = pathlib.Path(args.run) / "summary.json"
-    if not path.exists():
-        ap.error(f"{args.run}: no summary.json (is the run finished?)")
-    summary = json.loads(path.read_text())
+    parts = []
+    for run in map(pathlib.Path, args.run):
+        path = run / "summary.json"
+        if not path.exists():
+            ap.error(f"{run}: no summary.json (is the run finished?)")
+        parts.append((run, json.loads(path.read_text())))
+    if len(parts) == 1:
+        summary = parts[0][1]
+    else:
+        from tcd.figures import check_one_study, merge_summaries
+        try:
+            check_one_study([run for run, _ in parts])
+            summary = merge_summaries(parts)
+        except ValueError as exc:
+            ap.error(str(exc))
     print("| " + " | ".join(HEAD) + " |")
     print("|" + "---|" * len(HEAD))
     for row in rows_of(summary):

@@ -246,15 +246,19 @@ def cmd_analyse(args) -> int:
 
 
 def cmd_figures(args) -> int:
-    run_dir = Path(args.run_dir)
-    if not run_dir.is_dir():
-        raise UsageError(f"{run_dir}: no such run directory")
+    run_dirs = [Path(p) for p in args.run_dir]
+    for run_dir in run_dirs:
+        if not run_dir.is_dir():
+            raise UsageError(f"{run_dir}: no such run directory")
+    if len(run_dirs) > 1 and args.out is None:
+        raise UsageError("several run directories (the parts of one study): give --out DIR "
+                         "for their figures")
     from .figures import make_figures
-    written = make_figures(run_dir, args.out)
+    written = make_figures(run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out)
     for path in written:
         print(path)
     if not written:
-        print(f"tcd: no figures written from {run_dir}", file=sys.stderr)
+        print(f"tcd: no figures written from {', '.join(map(str, run_dirs))}", file=sys.stderr)
     return 0
 
 
@@ -479,9 +483,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "scenario (a checkpoint or prepared sample)")
     p.set_defaults(handler=cmd_analyse)
 
-    p = sub.add_parser("figures", help="make the report figures of a run directory")
-    p.add_argument("run_dir", metavar="RUN_DIR")
-    p.add_argument("--out", metavar="DIR", help="where to write them (default: inside RUN_DIR)")
+    p = sub.add_parser("figures", help="make the report figures of a run directory (or of the "
+                                        "parts of one study, run with --seeds)")
+    p.add_argument("run_dir", metavar="RUN_DIR", nargs="+",
+                   help="a run directory; several: the parts of one study, shown together")
+    p.add_argument("--out", metavar="DIR", help="where to write them (default: inside RUN_DIR; "
+                                                "needed with several RUN_DIRs)")
     p.set_defaults(handler=cmd_figures)
 
     p = sub.add_parser("view", help="interactive viewer of a states file (needs a display)")

@@ -16,7 +16,8 @@ without a readable series is skipped with a :class:`FigureWarning`; a run direct
 usable sample raises ValueError naming the directory; a failing render is skipped with a
 warning and the other outputs are still written.
 
-Usage: ``python -m tcd.figures RUN_DIR [--out OUT_DIR]``.
+Usage: ``python -m tcd.figures RUN_DIR [RUN_DIR ...] [--out OUT_DIR]`` (several run
+directories: the parts of one study, split with ``tcd run --seeds``; ``--out`` is then needed).
 """
 from __future__ import annotations
 
@@ -234,6 +235,120 @@ def summary_from_samples(samples: list[SampleCurves]) -> dict:
         out["mean"][key] = float(values.mean())
         out["std"][key] = float(values.std()) if values.size > 1 else math.nan
     return out
+
+
+#: the scenario keys that may differ between the runs of one study (--seeds splits it): they
+#: change no number of a sample (a sample's numbers depend on its seed and the physics only)
+STUDY_FREE_KEYS = ("seeds", "description", "name", "output")
+STUDY_SUMMARY_NAME = "study_summary.json"
+
+
+def _scenario_of(run_dir: Path) -> dict | None:
+    """The run's scenario.toml as a dict (None where it is missing or unreadable)."""
+    import tomllib
+    try:
+        data = tomllib.loads((run_dir / "scenario.toml").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+    return {k: v for k, v in data.items() if k not in STUDY_FREE_KEYS}
+
+
+def _backend_of(run_dir: Path) -> dict | None:
+    try:
+        record = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return {k: record.get(k) for k in ("arch", "precision")}
+
+
+def check_one_study(run_dirs: list[Path]) -> None:
+    """Refuse run directories that are not parts of one study: a scenario other than the
+    first run's (:data:`STUDY_FREE_KEYS` aside) raises ValueError naming what differs; runs on
+    different backends, or without a readable scenario.toml, give a FigureWarning."""
+    first = run_dirs[0]
+    reference, backend = _scenario_of(first), _backend_of(first)
+    for other in run_dirs[1:]:
+        scenario = _scenario_of(other)
+        if reference is None or scenario is None:
+            missing = first if reference is None else other
+            warnings.warn(f"{missing / 'scenario.toml'} missing or unreadable: cannot check that "
+                          f"{first} and {other} ran the same scenario", FigureWarning,
+                          stacklevel=3)
+        else:
+            changed = io.differences(reference, scenario)
+            if changed:
+                shown = "; ".join(changed[:6]) + (
+                    f"; and {len(changed) - 6} more" if len(changed) > 6 else "")
+                raise ValueError(f"{other} ran another scenario than {first} ({shown}): its "
+                                 "samples are not part of the same study")
+        theirs = _backend_of(other)
+        if backend and theirs and backend != theirs:
+            warnings.warn(f"{first} ran on {backend['arch']}/{backend['precision']} and "
+                          f"{other} on {theirs['arch']}/{theirs['precision']}: the samples "
+                          "differ at the level of the solver tolerance", FigureWarning,
+                          stacklevel=3)
+
+
+def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
+    """One study summary from the summaries of its runs: the samples of all (by seed), the
+    mean and population std over them (as :func:`tcd.runner.summarize`), the relative errors
+    of the mean and the runs it came from. A seed in two runs raises ValueError."""
+    owner, samples = {}, []
+    for run_dir, summary in parts:
+        for smp in summary.get("samples") or []:
+            seed = str(smp.get("seed"))
+            if seed in owner:
+                raise ValueError(f"sample {seed} is in both {owner[seed]} and {run_dir}: give "
+                                 "each sample once")
+            owner[seed] = run_dir
+            samples.append(smp)
+    samples.sort(key=lambda smp: _seed_key(str(smp.get("seed"))))
+    keys = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
+    mean, std = {}, {}
+    for key in keys:
+        values = np.array([_number(smp.get(key)) for smp in samples], dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size:
+            mean[key], std[key] = float(values.mean()), float(values.std())
+    first = parts[0][1]
+    experiment = {**EXPERIMENT, **(first.get("experiment") or {})}
+    relative = {}
+    if "tau_peak_MPa" in mean and "d_peak_mm" in mean:
+        relative = {"tau_peak": mean["tau_peak_MPa"] / experiment["tau_peak_MPa"] - 1.0,
+                    "d_peak": mean["d_peak_mm"] / experiment["d_peak_mm"] - 1.0}
+    return {"scenario": first.get("scenario"), "merged_from": [os.fspath(p) for p, _ in parts],
+            "samples": samples, "mean": mean, "std": std, "experiment": experiment,
+            "paper_simulation": {**PAPER_SIMULATION, **(first.get("paper_simulation") or {})},
+            "relative_error": relative,
+            "wall_time_s": {k: v for _, s in parts for k, v in (s.get("wall_time_s") or {}).items()
+                            if k.startswith("sample_")}}
+
+
+def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
+    """Like :func:`load_run` for one or several run directories of one study (a study split
+    with ``tcd run --seeds``): the samples of all of them and their merged summary.
+
+    Raises ValueError for runs of different scenarios, a seed found twice, or a run without a
+    usable sample; FileNotFoundError for a missing directory.
+    """
+    run_dirs = [Path(p) for p in ([run_dirs] if isinstance(run_dirs, (str, os.PathLike))
+                                  else run_dirs)]
+    if not run_dirs:
+        raise ValueError("no run directory given")
+    if len(run_dirs) == 1:
+        return load_run(run_dirs[0])
+    for run_dir in run_dirs:
+        if not run_dir.is_dir():
+            raise FileNotFoundError(f"{run_dir}: run directory not found")
+    check_one_study(run_dirs)
+    parts, samples = [], []
+    for run_dir in run_dirs:
+        summary, found = load_run(run_dir)
+        parts.append((run_dir, summary if summary is not None else summary_from_samples(found)))
+        samples += found
+    merged = merge_summaries(parts)     # raises on a seed found twice
+    samples.sort(key=lambda s: _seed_key(s.seed))
+    return merged, samples
 
 
 # --- writing ---------------------------------------------------------------------------------
@@ -520,10 +635,17 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     """Write Fig. 4 (png, pdf), Table 2 (md, csv, png), bonds_broken.png and, with `render`,
     Fig. 2 and Fig. 3 of the run in `run_dir` into `out_dir` (default run_dir/figures).
 
-    Returns the files written. Skipped samples and figures give a :class:`FigureWarning`.
+    `run_dir` may be a list of run directories of one study (split with ``tcd run --seeds``):
+    their samples are shown together, `out_dir` must then be given, and the merged summary is
+    written there too (:data:`STUDY_SUMMARY_NAME`). Returns the files written. Skipped
+    samples and figures give a :class:`FigureWarning`.
     """
-    run_dir = Path(run_dir)
-    summary, samples = load_run(run_dir)
+    several = not isinstance(run_dir, (str, os.PathLike)) and len(run_dir) > 1
+    if several and out_dir is None:
+        raise ValueError("several run directories: give the folder for their figures (--out)")
+    summary, samples = load_runs(run_dir)
+    if not several:
+        run_dir = Path(run_dir if isinstance(run_dir, (str, os.PathLike)) else run_dir[0])
     out_dir = Path(out_dir) if out_dir is not None else run_dir / "figures"
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -533,6 +655,9 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
         state = "unreadable" if (run_dir / SUMMARY_NAME).exists() else "missing"
         warnings.warn(f"{run_dir / SUMMARY_NAME} {state}: Table 2 from the series peaks",
                       FigureWarning, stacklevel=2)
+    if several:
+        io.write_json(out_dir / STUDY_SUMMARY_NAME, summary)
+        written.append(out_dir / STUDY_SUMMARY_NAME)
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples))
     _write_text(out_dir / "table2.md", table2_markdown(rows), written)
     _write_text(out_dir / "table2.csv", table2_csv(rows), written)
@@ -546,10 +671,15 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tcd.figures", description=__doc__.split(
         "\n")[0])
-    parser.add_argument("run_dir", help="run directory (summary.json, sample_<seed>/...)")
-    parser.add_argument("--out", default=None, help="output folder (default RUN_DIR/figures)")
+    parser.add_argument("run_dir", nargs="+",
+                        help="run directory (summary.json, sample_<seed>/...); several: the "
+                             "parts of one study split with tcd run --seeds")
+    parser.add_argument("--out", default=None, help="output folder (default RUN_DIR/figures; "
+                        "needed with several run directories)")
     parser.add_argument("--no-render", action="store_true", help="skip Fig. 2 and Fig. 3")
     args = parser.parse_args(argv)
+    if len(args.run_dir) > 1 and args.out is None:
+        parser.error("several run directories: give --out")
     for path in make_figures(args.run_dir, args.out, render=not args.no_render):
         print(os.fspath(path))
     return 0

@@ -164,20 +164,6 @@ def _scenario_record(scenario) -> dict:
                                                      "description"})
 
 
-def _differences(old, new, prefix="") -> list:
-    if isinstance(old, dict) and isinstance(new, dict):
-        out = []
-        for k in sorted(set(old) | set(new), key=str):
-            out += _differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
-        return out
-    if isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
-        out = []
-        for k, (a, b) in enumerate(zip(old, new)):
-            out += _differences(a, b, f"{prefix}[{k}]")
-        return out
-    return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
-
-
 def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     """A new run: create `out` and keep the scenario's text (scenario.toml) and backend
     (run.json). A resumed one: refuse, before anything is written, a scenario or backend other
@@ -192,7 +178,7 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
         except (ScenarioError, OSError, UnicodeDecodeError) as exc:
             raise ValueError(f"{stored}: the scenario this run started with cannot be read "
                              f"back ({exc}); resume is refused") from None
-        changed = _differences(_scenario_record(first), _scenario_record(scenario))
+        changed = io.differences(_scenario_record(first), _scenario_record(scenario))
         record = out / "run.json"
         if record.is_file():
             try:

@@ -358,6 +358,14 @@ def test_figures_prints_written_files(tmp_path, stub, capsys):
     assert main(["figures", str(tmp_path)]) == 0
     assert str(tmp_path / "fig1.png") in capsys.readouterr().out
     assert main(["figures", str(tmp_path / "nope")]) == 2
+    # several run directories (one study split with --seeds): all are passed, --out is needed
+    stub("figures", make_figures=lambda run_dir, out_dir=None: [pathlib.Path(out_dir) / "table2.md"])
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    assert main(["figures", str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    assert "give --out" in capsys.readouterr().err
+    assert main(["figures", str(tmp_path / "a"), str(tmp_path / "b"), "--out",
+                 str(tmp_path / "o")]) == 0
+    assert str(tmp_path / "o" / "table2.md") in capsys.readouterr().out
 
 
 def test_view_without_display_exits_2(tmp_path, stub, capsys):

@@ -181,6 +181,68 @@ def test_make_figures_without_usable_series_names_the_directory(tmp_path):
     assert not (run / "figures").exists() or not any((run / "figures").iterdir())
 
 
+# --- a study split across runs (tcd run --seeds) ------------------------------------------------
+_SCENARIO = 'name = "synthetic"\nseeds = [11, 12, 13]\n[bond]\nyield_stress_MPa = 1.6\n'
+
+
+def _split_study(tmp_path, second_seeds=(13,), scenario=_SCENARIO, arch="cpu"):
+    """The three samples of make_figures' test as two runs: seeds 11, 12, then `second_seeds`."""
+    peaks = {11: (0.80e6, 2.1e-3), 12: (0.86e6, 2.3e-3), 13: (0.83e6, 2.2e-3)}
+    runs = []
+    for name, seeds, text, backend in (("a", (11, 12), _SCENARIO, "cpu"),
+                                       ("b", second_seeds, scenario, arch)):
+        run = tmp_path / name
+        for seed in seeds:
+            _write_sample(run, seed, *peaks[seed])
+        summary = _summary()
+        summary["samples"] = [s for s in summary["samples"] if s["seed"] in seeds]
+        summary["mean"] = {"tau_peak_MPa": 9.9}     # a part's own mean: not the study's
+        (run / "summary.json").write_text(json.dumps(summary))
+        (run / "scenario.toml").write_text(text.replace("[11, 12, 13]", str(list(seeds))))
+        (run / "run.json").write_text(json.dumps({"arch": backend, "precision": "f64"}))
+        runs.append(run)
+    return runs
+
+
+def test_figures_of_a_study_split_across_runs(tmp_path):
+    # another name, description and output (the quick scenario and the whole study) are fine
+    renamed = _SCENARIO.replace('"synthetic"', '"synthetic_quick"\ndescription = "one seed"')
+    runs = _split_study(tmp_path, scenario=renamed + "[output]\nsnapshot_every = 0.5\n")
+    out = tmp_path / "study"
+    with pytest.warns(FigureWarning, match="fig2.*fig3.*skipped"):
+        written = make_figures(runs, out)
+    assert {p.name for p in written} >= {"fig4_stress_displacement.png", "table2.md",
+                                         "study_summary.json", "bonds_broken.png"}
+    study = json.loads((out / "study_summary.json").read_text())
+    assert [s["seed"] for s in study["samples"]] == [11, 12, 13]
+    assert study["merged_from"] == [str(r) for r in runs]
+    assert study["mean"]["tau_peak_MPa"] == pytest.approx(0.83)
+    assert study["std"]["d_peak_mm"] == pytest.approx(np.std([2.1, 2.3, 2.2]))
+    assert study["relative_error"]["d_peak"] == pytest.approx(2.2 / 2.37 - 1.0)
+    md = (out / "table2.md").read_text()
+    assert "3 samples" in md and "0.830 ±" in md and "-7.6 %" in md
+    assert not (runs[0] / "figures").exists()       # the parts are left as they are
+
+
+def test_figures_of_a_split_study_refuse_a_seed_twice_and_another_scenario(tmp_path):
+    runs = _split_study(tmp_path / "twice", second_seeds=(12, 13))
+    with pytest.raises(ValueError, match=r"sample 12 is in both .*a and .*b"):
+        make_figures(runs, tmp_path / "out1")
+    changed = _SCENARIO.replace("1.6", "1.9")
+    runs = _split_study(tmp_path / "other", scenario=changed)
+    with pytest.raises(ValueError, match=r"bond.yield_stress_MPa: 1.6 -> 1.9"):
+        make_figures(runs, tmp_path / "out2")
+    assert not (tmp_path / "out1").exists() and not (tmp_path / "out2").exists()
+    with pytest.raises(ValueError, match="--out"):
+        make_figures(runs)
+
+
+def test_figures_of_a_split_study_warn_about_different_backends(tmp_path):
+    runs = _split_study(tmp_path, arch="gpu")
+    with pytest.warns(FigureWarning, match="cpu/f64 and .* on gpu/f64"):
+        make_figures(runs, tmp_path / "out", render=False)
+
+
 def test_render_frames_choose_prepared_and_peak_frames():
     stages = [(0.0, "prepare"), (1.0, "prepare"), (2.0, "shear"), (2.5, "shear"),
               (3.0, "shear"), (4.0, "shear")]
