@@ -119,7 +119,10 @@ def table2_rows(summary: dict) -> list[dict]:
         row("experiments", tau_exp, d_exp, reference=False),
         row("paper simulations (LMGC90)", _number(paper["tau_peak_MPa"]),
             _number(paper["d_peak_mm"]), n_samples=5),
-        row(f"tcd (this run, mean ± std of {n} samples)", tau_run, d_run, tau_std, d_std, n),
+        row(f"tcd (this run, mean ± std of {n} samples)", tau_run, d_run, tau_std, d_std, n)
+        if n != 1 else
+        # one sample has no spread: its std (0 in the runner's summary) is not shown
+        row("tcd (this run, one sample)", tau_run, d_run, n_samples=1),
     ]
 
 

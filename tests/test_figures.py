@@ -169,7 +169,7 @@ def test_make_figures_skips_samples_without_series(tmp_path):
         written = make_figures(run, out)        # no summary.json: table from the series
     assert (out / "fig4_stress_displacement.png") in written
     md = (out / "table2.md").read_text()
-    assert "0.850" in md and "2.20" in md and "1 samples" in md
+    assert "0.850" in md and "2.20" in md and "one sample" in md and "±" not in md
 
 
 def test_make_figures_without_usable_series_names_the_directory(tmp_path):
