@@ -280,10 +280,9 @@ def check_one_study(run_dirs: list[Path]) -> None:
         else:
             changed = io.differences(reference, scenario)
             if changed:
-                shown = "; ".join(changed[:6]) + (
-                    f"; and {len(changed) - 6} more" if len(changed) > 6 else "")
-                raise ValueError(f"{other} ran another scenario than {first} ({shown}): its "
-                                 "samples are not part of the same study")
+                raise ValueError(f"{other} ran another scenario than {first} "
+                                 f"({io.shown_differences(changed)}): its samples are not part "
+                                 "of the same study")
         theirs = _backend_of(other)
         if backend and theirs and backend != theirs:
             warnings.warn(f"{first} ran on {backend['arch']}/{backend['precision']} and "
@@ -327,6 +326,13 @@ def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
                             if k.startswith("sample_")}}
 
 
+def _as_run_dirs(run_dirs) -> list[Path]:
+    """One path or a list of them, as a list of Paths."""
+    if isinstance(run_dirs, (str, os.PathLike)):
+        return [Path(run_dirs)]
+    return [Path(p) for p in run_dirs]
+
+
 def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
     """Like :func:`load_run` for one or several run directories of one study (a study split
     with ``tcd run --seeds``): the samples of all of them and their merged summary.
@@ -334,8 +340,7 @@ def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
     Raises ValueError for runs of different scenarios, a seed found twice, or a run without a
     usable sample; FileNotFoundError for a missing directory.
     """
-    run_dirs = [Path(p) for p in ([run_dirs] if isinstance(run_dirs, (str, os.PathLike))
-                                  else run_dirs)]
+    run_dirs = _as_run_dirs(run_dirs)
     if not run_dirs:
         raise ValueError("no run directory given")
     if len(run_dirs) == 1:
@@ -643,12 +648,12 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     written there too (:data:`STUDY_SUMMARY_NAME`). Returns the files written. Skipped
     samples and figures give a :class:`FigureWarning`.
     """
-    several = not isinstance(run_dir, (str, os.PathLike)) and len(run_dir) > 1
+    run_dirs = _as_run_dirs(run_dir)
+    several = len(run_dirs) > 1
     if several and out_dir is None:
         raise ValueError("several run directories: give the folder for their figures (--out)")
-    summary, samples = load_runs(run_dir)
-    if not several:
-        run_dir = Path(run_dir if isinstance(run_dir, (str, os.PathLike)) else run_dir[0])
+    summary, samples = load_runs(run_dirs)
+    run_dir = run_dirs[0]
     out_dir = Path(out_dir) if out_dir is not None else run_dir / "figures"
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []

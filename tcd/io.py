@@ -234,6 +234,12 @@ def differences(old, new, prefix="") -> list:
     return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
 
 
+def shown_differences(changed: list, limit: int = 6) -> str:
+    """The first `limit` lines of :func:`differences`, joined, and how many more there are."""
+    more = len(changed) - limit
+    return "; ".join(changed[:limit]) + (f"; and {more} more" if more > 0 else "")
+
+
 # --- shared checks ---------------------------------------------------------------------------
 def _now_iso() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")

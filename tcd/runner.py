@@ -188,9 +188,8 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
             changed += [f"backend.{k}: {started[k]!r} -> {v!r} (--{k})"
                         for k, v in backend_now.items() if k in started and started[k] != v]
         if changed:
-            shown = "; ".join(changed[:6]) + (f"; and {len(changed) - 6} more" if len(changed) > 6 else "")
             raise ValueError(f"{out}: --resume with a scenario other than the one this run "
-                             f"started with ({stored}): {shown}. Resume with that scenario and "
+                             f"started with ({stored}): {io.shown_differences(changed)}. Resume with that scenario and "
                              "backend, or start a new run in another --out directory")
         return
     if out.exists() and not out.is_dir():
