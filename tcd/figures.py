@@ -39,10 +39,8 @@ from matplotlib.figure import Figure
 from . import io
 from . import observables as obs
 
-#: paper Table 2, mean of 5 cores (MPa, mm)
-EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
-#: paper Table 2, mean of the paper's 5 LMGC90 samples (MPa, mm)
-PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+#: paper Table 2 (MPa, mm): the experiments and the paper's own simulations
+EXPERIMENT, PAPER_SIMULATION = obs.PAPER_EXPERIMENT, obs.PAPER_SIMULATION
 #: moving-average window (m of imposed displacement) when the series does not give one
 #: (the scenario default, shear.smoothing_window_mm = 0.1)
 DEFAULT_SMOOTHING_WINDOW = 1e-4
@@ -292,9 +290,9 @@ def check_one_study(run_dirs: list[Path]) -> None:
 
 
 def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
-    """One study summary from the summaries of its runs: the samples of all (by seed), the
-    mean and population std over them (as :func:`tcd.runner.summarize`), the relative errors
-    of the mean and the runs it came from. A seed in two runs raises ValueError."""
+    """One study summary from the summaries of its runs: the samples of all (by seed), their
+    mean, population std and relative errors (:func:`tcd.observables.study_statistics`, as
+    the runner's summary) and the runs it came from. A seed in two runs raises ValueError."""
     owner, samples = {}, []
     for run_dir, summary in parts:
         for smp in summary.get("samples") or []:
@@ -305,19 +303,9 @@ def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
             owner[seed] = run_dir
             samples.append(smp)
     samples.sort(key=lambda smp: _seed_key(str(smp.get("seed"))))
-    keys = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
-    mean, std = {}, {}
-    for key in keys:
-        values = np.array([_number(smp.get(key)) for smp in samples], dtype=float)
-        values = values[np.isfinite(values)]
-        if values.size:
-            mean[key], std[key] = float(values.mean()), float(values.std())
     first = parts[0][1]
     experiment = {**EXPERIMENT, **(first.get("experiment") or {})}
-    relative = {}
-    if "tau_peak_MPa" in mean and "d_peak_mm" in mean:
-        relative = {"tau_peak": mean["tau_peak_MPa"] / experiment["tau_peak_MPa"] - 1.0,
-                    "d_peak": mean["d_peak_mm"] / experiment["d_peak_mm"] - 1.0}
+    mean, std, relative = obs.study_statistics(samples, experiment)
     return {"scenario": first.get("scenario"), "merged_from": [os.fspath(p) for p, _ in parts],
             "samples": samples, "mean": mean, "std": std, "experiment": experiment,
             "paper_simulation": {**PAPER_SIMULATION, **(first.get("paper_simulation") or {})},

@@ -10,6 +10,13 @@ import math
 
 import numpy as np
 
+#: the paper's Table 2: mean of the 5 cores tested (MPa, mm)
+PAPER_EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
+#: the paper's Table 2: mean of its 5 LMGC90 samples (MPa, mm)
+PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+#: the per-sample results a study averages
+STUDY_KEYS = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
+
 
 def kinetic_energy(x_v, w, radius, density: float) -> float:
     """Translational + rotational kinetic energy (J) of spheres of `density`."""
@@ -119,3 +126,33 @@ def peak_of(displacement, stress, window) -> tuple[float, float, int]:
     top = np.nanmax(smoothed)
     index = int(np.flatnonzero(smoothed == top)[-1])
     return float(top), float(displacement[index]), index
+
+
+def _finite(value) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return math.nan
+    return value if math.isfinite(value) else math.nan
+
+
+def study_statistics(samples, experiment=None) -> tuple[dict, dict, dict]:
+    """(mean, population std, relative error of the mean) of a study's samples.
+
+    Each of :data:`STUDY_KEYS` is averaged over the samples where it is a finite number (a
+    sample without a peak, or with null / NaN, is left out of that key only) and is absent from
+    mean and std when no sample has it. The relative errors ``tau_peak`` and ``d_peak`` compare
+    the mean with `experiment` (default: the paper's experiments) and need both means.
+    """
+    experiment = {**PAPER_EXPERIMENT, **(experiment or {})}
+    mean, std = {}, {}
+    for key in STUDY_KEYS:
+        values = np.array([_finite(smp.get(key)) for smp in samples], dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size:
+            mean[key], std[key] = float(values.mean()), float(values.std())
+    relative = {}
+    if "tau_peak_MPa" in mean and "d_peak_mm" in mean:
+        relative = {"tau_peak": mean["tau_peak_MPa"] / experiment["tau_peak_MPa"] - 1.0,
+                    "d_peak": mean["d_peak_mm"] / experiment["d_peak_mm"] - 1.0}
+    return mean, std, relative

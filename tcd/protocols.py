@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time as _time
 
 import numpy as np
 
@@ -51,8 +50,7 @@ from . import observables as obs
 from . import packing
 from .walls import Wall, cylinder, plane
 
-PAPER_EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
-PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+PAPER_EXPERIMENT, PAPER_SIMULATION = obs.PAPER_EXPERIMENT, obs.PAPER_SIMULATION
 SETTLE_CHECK_EVERY = 50
 
 
@@ -184,7 +182,6 @@ class Prepare:
         servo_step(sim, phase)
 
     def _add_layer(self, sim, L: int, t: float):
-        from .simulation import Simulation
         c = self.cfg
         r_new = self.layer_radii(L)
         rng = np.random.default_rng([self.seed, L, 1])

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from . import __version__, backend, io
+from . import observables as obs
 from .state import MAX_SYSTEMS
 from .protocols import PAPER_EXPERIMENT, PAPER_SIMULATION, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
 
@@ -643,14 +644,7 @@ def load_prepared(scn, path):
 
 
 def summarize(scn, samples: list) -> dict:
-    keys = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
-    have = [s for s in samples if "tau_peak_MPa" in s]
-    mean = {k: float(np.mean([s[k] for s in have])) for k in keys} if have else {}
-    std = {k: float(np.std([s[k] for s in have])) for k in keys} if have else {}
-    rel = {}
-    if have:
-        rel = {"tau_peak": mean["tau_peak_MPa"] / PAPER_EXPERIMENT["tau_peak_MPa"] - 1.0,
-               "d_peak": mean["d_peak_mm"] / PAPER_EXPERIMENT["d_peak_mm"] - 1.0}
+    mean, std, rel = obs.study_statistics(samples, PAPER_EXPERIMENT)
     wall = {f"sample_{s['seed']}": s.get("wall_time_s", {}) for s in samples}
     return {"scenario": scn.name, "tcd_version": __version__, "arch": scn.backend.arch,
             "precision": scn.backend.precision, "samples": samples, "mean": mean, "std": std,

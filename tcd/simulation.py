@@ -18,7 +18,6 @@ import os
 from typing import Sequence
 
 import numpy as np
-import taichi as ti
 
 from . import backend, contacts as ck, partitioned as pk, solver as sk, state as state_mod
 from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
@@ -609,7 +608,7 @@ class Simulation:
         """Colour this step's bond items and contacts (greedy or by rounds, see
         SolverSettings.colouring); (number of colours, number of items)."""
         s = self.settings
-        p, ct, bd = self.particles, self.contacts, self.bonds
+        ct, bd = self.contacts, self.bonds
         blocks = self._blocks()
         nb = self.n if blocks else int(bd.total[None])
         need = ct.capacity + (self.particles.capacity if blocks else bd.capacity)

@@ -6,7 +6,7 @@ import re
 import pydantic
 import pytest
 
-from tcd.config import (BackendConfig, PrepareStage, Scenario, ScenarioError, ShearStage,
+from tcd.config import (BackendConfig, PrepareStage, ScenarioError, ShearStage,
                         load_scenario, parse_scenario)
 from tcd.simulation import SolverSettings
 

@@ -68,16 +68,17 @@ def _oracle(sim):
 
     bd = sim.bonds
     nb = int(bd.total[None])
-    for name in ("i", "j", "state", "normal", "impulse", "rhs_n", "rhs_t", "cn", "ct"):
-        globals()["_b_" + name] = getattr(bd, name).to_numpy()[:nb]
+    bond = {name: getattr(bd, name).to_numpy()[:nb]
+            for name in ("i", "j", "state", "normal", "impulse", "rhs_n", "rhs_t", "cn", "ct")}
     for b in range(nb):
-        if _b_state[b] != 0:
+        if bond["state"][b] != 0:
             continue
-        i, j, nrm, r_old = int(_b_i[b]), int(_b_j[b]), _b_normal[b], _b_impulse[b]
+        i, j, nrm, r_old = int(bond["i"][b]), int(bond["j"][b]), bond["normal"][b], bond["impulse"][b]
         wnn = inv_m[i] + inv_m[j]
         wtt = wnn + rad[i] ** 2 * inv_i[i] + rad[j] ** 2 * inv_i[j]
         ufn, uft = free(rel_vel(i, j, nrm), r_old, nrm, wnn, wtt)
-        rn, rt = laws.bonded_np(ufn, uft, _b_rhs_n[b], _b_rhs_t[b], wnn, wtt, _b_cn[b], _b_ct[b])
+        rn, rt = laws.bonded_np(ufn, uft, bond["rhs_n"][b], bond["rhs_t"][b], wnn, wtt,
+                                bond["cn"][b], bond["ct"][b])
         add(r_old, rn * nrm + rt, nrm, wnn, wtt)
     ct = sim.contacts
     nc = int(ct.total[None])

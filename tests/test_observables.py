@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from tcd import observables as obs
 
@@ -41,3 +42,20 @@ def test_slab_packing_fractions_add_up():
     b = obs.packing_fraction(x, r, 0.03, 0.02, 0.05)
     assert abs((0.02 * a + 0.03 * b) / 0.05 - total) < 1e-12
     assert abs(total * math.pi * 0.03**2 * 0.05 - (4 / 3 * math.pi * r**3).sum()) < 1e-15
+
+
+def test_study_statistics_average_finite_values_and_compare_with_the_experiments():
+    samples = [{"seed": 1, "tau_peak_MPa": 0.9, "d_peak_mm": 2.0, "residual_MPa": 0.5},
+               {"seed": 2, "tau_peak_MPa": 1.1, "d_peak_mm": 2.4, "residual_MPa": None},
+               {"seed": 3},                                   # no peak: left out
+               {"seed": 4, "tau_peak_MPa": float("nan"), "d_peak_mm": 2.6, "residual_MPa": 0.7}]
+    mean, std, rel = obs.study_statistics(samples)
+    assert mean["tau_peak_MPa"] == pytest.approx(1.0) and std["tau_peak_MPa"] == pytest.approx(0.1)
+    assert mean["d_peak_mm"] == pytest.approx(7.0 / 3.0)
+    assert std["d_peak_mm"] == pytest.approx(np.std([2.0, 2.4, 2.6]))
+    assert mean["residual_MPa"] == pytest.approx(0.6)
+    assert rel["tau_peak"] == pytest.approx(1.0 / 0.898 - 1.0)
+    assert rel["d_peak"] == pytest.approx((7.0 / 3.0) / 2.37 - 1.0)
+    _, _, rel = obs.study_statistics(samples, {"tau_peak_MPa": 1.0})
+    assert rel["tau_peak"] == pytest.approx(0.0)
+    assert obs.study_statistics([{"seed": 1}]) == ({}, {}, {})
