@@ -212,6 +212,17 @@ class Prepare:
         return new
 
     # -- records -------------------------------------------------------------------------------
+    def phase_end(self, sim, phase) -> dict:
+        """Numbers kept with the record of a phase that has just ended: at the end of a
+        course's hold, the course as built (its grains' 99th-percentile top and the plate)."""
+        if phase.name != "hold":
+            return {}
+        L = int(phase.info["layer"])
+        x, r = sim.positions(), sim.radii()
+        sel = sim.state_dict()["particles/layer"] == L
+        return {"course_top_mm": 1e3 * float(np.percentile(x[sel, 2] + r[sel], 99.0)),
+                "plate_mm": 1e3 * float(sim.walls[2].position(sim.time)[2])}
+
     def record(self, sim, phase) -> dict:
         row = {"phase": ["pour", "vibrate", "hold", "confine"].index(phase.name),
                "layer": phase.info.get("layer", 0)}
@@ -223,7 +234,22 @@ class Prepare:
             row["top_plate_z"] = float("nan")
         return row
 
-    def finish(self, sim) -> dict:
+    @staticmethod
+    def as_built(phases, courses: int) -> list:
+        """Each course's height as built (mm): its top when its own hold ended, from the top of
+        the course below at the end of that one's hold (the first from the bottom plate).
+        `phases` are the stage's phase records (runner: result["phases"]); None for a course
+        whose record lacks its top (a run resumed from a checkpoint older than the record)."""
+        tops = [None] * courses
+        for rec in phases or ():
+            if rec.get("phase") == "hold" and "course_top_mm" in rec:
+                tops[int(rec["layer"])] = float(rec["course_top_mm"])
+        below = [0.0] + tops[:-1]
+        return [None if t is None or b is None else t - b for t, b in zip(tops, below)]
+
+    def finish(self, sim, phases=()) -> dict:
+        """The prepared sample's numbers; `phases`: the stage's phase records (for the
+        heights as built)."""
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
@@ -250,6 +276,7 @@ class Prepare:
             "layer_heights_mm": [1e3 * (bounds[k + 1] - bounds[k]) for k in range(nl)],
             "packing_fraction_per_layer": [obs.packing_fraction(x, r, self.radius, bounds[L], bounds[L + 1])
                                            for L in range(nl)],
+            "course_heights_as_built_mm": self.as_built(phases, nl),
             "course_lift_heights_mm": [1e3 * (lifts[k + 1] - lifts[k]) for k in range(nl)],
             "course_packing_fraction_per_lift": [float(vol[layer == L].sum()) / (area * (lifts[L + 1] - lifts[L]))
                                                  for L in range(nl)],

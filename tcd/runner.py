@@ -526,9 +526,12 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                 last_ck = _checkpoint_if_due(interrupt, last_ck, scn.output.checkpoint_every_s,
                                              timed_checkpoint, bar)
             bar.close()
-            result.setdefault("phases", []).append({"stage": stage.kind, "phase": phase.name,
+            end = getattr(proto, "phase_end", None)
+            result.setdefault("phases", []).append({"stage": stage.kind, "stage_index": stage_idx,
+                                                    "phase": phase.name,
                                                     "steps": step_in_phase, "end_time": sim.time,
-                                                    **{k: v for k, v in phase.info.items()}})
+                                                    **{k: v for k, v in phase.info.items()},
+                                                    **(end(sim, phase) if end else {})})
             result["last_phase"] = phase.to_json()
             phase_idx += 1
             phase = None
@@ -540,7 +543,9 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
             numbers, attrs = _shear_numbers(proto, sim, Phase.from_json(result["last_phase"]), arrays,
                                             states, result.get("stage_first_frame", {}).get(str(stage_idx)))
         else:
-            numbers = proto.finish(sim)
+            numbers = proto.finish(sim, [rec for rec in result.get("phases", [])
+                                         if rec.get("stage_index", stage_idx) == stage_idx
+                                         and rec.get("stage") == stage.kind])
             attrs = {}
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)

@@ -79,6 +79,32 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert cli.main(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
 
 
+def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
+    """Each course's height as built is read when its own hold ends: its grains' top (never
+    above the plate that holds them), from the top the course below had at its own end."""
+    _, out = micro_run
+    sample = json.loads((out / "sample_3" / "summary.json").read_text())
+    holds = [rec for rec in sample["phases"] if rec["phase"] == "hold"]
+    assert [rec["layer"] for rec in holds] == [0, 1]
+    arrays, _ = io.load_checkpoint(out / "sample_3" / "prepared.h5")
+    slack = 1e3 * 0.01 * 2 * arrays["particles/radius"].min()
+    for rec in holds:
+        assert 0.0 < rec["course_top_mm"] <= rec["plate_mm"] + slack
+    built = sample["stages"]["0:prepare"]["course_heights_as_built_mm"]
+    assert built[0] == pytest.approx(holds[0]["course_top_mm"], rel=1e-12)
+    assert built[1] == pytest.approx(holds[1]["course_top_mm"] - holds[0]["course_top_mm"], rel=1e-12)
+
+
+def test_courses_as_built_from_phase_records():
+    from tcd.protocols import Prepare
+    recs = [{"phase": "pour", "layer": 0}, {"phase": "hold", "layer": 0, "course_top_mm": 59.0},
+            {"phase": "hold", "layer": 1, "course_top_mm": 119.5}, {"phase": "confine", "layer": 1}]
+    assert Prepare.as_built(recs, 2) == pytest.approx([59.0, 60.5])
+    # a run resumed from a checkpoint written before the record existed: nothing made up
+    assert Prepare.as_built(recs[2:], 2) == [None, None]
+    assert Prepare.as_built(recs[:2], 2) == [59.0, None]
+
+
 def test_same_scenario_same_numbers_with_parallel_samples(micro_run, tmp_path):
     """Seed 3 again, this time next to seed 4 in two worker processes (--jobs 2): seed 3's
     numbers are bit-identical to the single-process run."""
