@@ -35,6 +35,20 @@ def test_rows_and_summary_lines(table, tmp_path, capsys):
     assert "+5.8 %" in lines[7] and "-7.2 %" in lines[7]
 
 
+def test_one_sample_has_no_spread(table, tmp_path, capsys):
+    summary = {"samples": [_sample(1, 0.9, 2.3)],
+               "mean": {"tau_peak_MPa": 0.9, "d_peak_mm": 2.3, "residual_MPa": 0.7},
+               "std": {"tau_peak_MPa": 0.0, "d_peak_mm": 0.0, "residual_MPa": 0.0},
+               "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
+               "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2},
+               "relative_error": {"tau_peak": 0.9 / 0.898 - 1, "d_peak": 2.3 / 2.37 - 1}}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    assert table.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "±" not in out and "mean" not in out
+    assert out.splitlines()[-1].startswith("| vs experiments |  | +0.2 % | -3.0 % |")
+
+
 def test_unfinished_run_is_refused(table, tmp_path, capsys):
     with pytest.raises(SystemExit):
         table.main([str(tmp_path)])
