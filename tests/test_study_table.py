@@ -19,14 +19,20 @@ def _sample(seed, tau, d):
         "kinetic_over_work_max": 2.4e-4, "wall_time_s": 1500.4}}}
 
 
+def _write_summary(run_dir, samples, tau, d, tau_std, d_std):
+    """A run's summary.json as the runner writes it: the samples, their mean (tau, d) and std,
+    the paper's numbers and the relative errors."""
+    (run_dir / "summary.json").write_text(json.dumps({
+        "samples": samples,
+        "mean": {"tau_peak_MPa": tau, "d_peak_mm": d, "residual_MPa": 0.7},
+        "std": {"tau_peak_MPa": tau_std, "d_peak_mm": d_std, "residual_MPa": 0.0},
+        "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
+        "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2},
+        "relative_error": {"tau_peak": tau / 0.898 - 1, "d_peak": d / 2.37 - 1}}))
+
+
 def test_rows_and_summary_lines(table, tmp_path, capsys):
-    summary = {"samples": [_sample(1, 0.9, 2.3), _sample(2, 1.0, 2.1)],
-               "mean": {"tau_peak_MPa": 0.95, "d_peak_mm": 2.2, "residual_MPa": 0.7},
-               "std": {"tau_peak_MPa": 0.05, "d_peak_mm": 0.1, "residual_MPa": 0.0},
-               "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
-               "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2},
-               "relative_error": {"tau_peak": 0.95 / 0.898 - 1, "d_peak": 2.2 / 2.37 - 1}}
-    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    _write_summary(tmp_path, [_sample(1, 0.9, 2.3), _sample(2, 1.0, 2.1)], 0.95, 2.2, 0.05, 0.1)
     assert table.main([str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 2 + 2 + 4
@@ -36,13 +42,7 @@ def test_rows_and_summary_lines(table, tmp_path, capsys):
 
 
 def test_one_sample_has_no_spread(table, tmp_path, capsys):
-    summary = {"samples": [_sample(1, 0.9, 2.3)],
-               "mean": {"tau_peak_MPa": 0.9, "d_peak_mm": 2.3, "residual_MPa": 0.7},
-               "std": {"tau_peak_MPa": 0.0, "d_peak_mm": 0.0, "residual_MPa": 0.0},
-               "experiment": {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37},
-               "paper_simulation": {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2},
-               "relative_error": {"tau_peak": 0.9 / 0.898 - 1, "d_peak": 2.3 / 2.37 - 1}}
-    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    _write_summary(tmp_path, [_sample(1, 0.9, 2.3)], 0.9, 2.3, 0.0, 0.0)
     assert table.main([str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "±" not in out and "mean" not in out
