@@ -543,18 +543,21 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
             numbers, attrs = _shear_numbers(proto, sim, Phase.from_json(result["last_phase"]), arrays,
                                             states, result.get("stage_first_frame", {}).get(str(stage_idx)))
         else:
-            numbers = proto.finish(sim, [rec for rec in result.get("phases", [])
-                                         if rec.get("stage_index", stage_idx) == stage_idx
-                                         and rec.get("stage") == stage.kind])
+            stage_phases = [rec for rec in result.get("phases", [])
+                            if rec.get("stage_index", stage_idx) == stage_idx
+                            and rec.get("stage") == stage.kind]
+            numbers = proto.finish(sim, stage_phases)
             attrs = {}
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)
         result["stages"][f"{stage_idx}:{stage.kind}"] = numbers
         _write_series(sample_dir, stage.kind, arrays, attrs)
         if stage.kind == "prepare":
+            # with the stage's phase records, so the file alone gives the courses as built
             io.save_checkpoint(sample_dir / "prepared.h5", sim.state_dict(),
                                {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
-                                "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]})
+                                "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
+                                "phases": stage_phases})
         io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage=stage.kind,
                         scenario_text=scn.text, tcd_version=__version__)    # and its last
         series = {}

@@ -95,6 +95,21 @@ def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
     assert built[1] == pytest.approx(holds[1]["course_top_mm"] - holds[0]["course_top_mm"], rel=1e-12)
 
 
+def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, capsys):
+    """prepared.h5 carries the preparation's phase records: benchmarks/sample_table.py, which
+    reads only the file, reports the same courses as built as the run's summary."""
+    from tcd.config import load_scenario
+    scenario, out = micro_run
+    table = benchmark_script("sample_table")
+    numbers = table.sample_numbers(load_scenario(scenario), out / "sample_3" / "prepared.h5")
+    sample = json.loads((out / "sample_3" / "summary.json").read_text())
+    built = sample["stages"]["0:prepare"]["course_heights_as_built_mm"]
+    assert numbers["course_heights_as_built_mm"] == pytest.approx(built, rel=1e-12)
+    assert table.main([str(scenario), str(out / "sample_3" / "prepared.h5")]) == 0
+    row = capsys.readouterr().out.splitlines()[2]
+    assert row.endswith(f"| {built[0]:.1f} / {built[1]:.1f} |")
+
+
 def test_courses_as_built_from_phase_records():
     from tcd.protocols import Prepare
     recs = [{"phase": "pour", "layer": 0}, {"phase": "hold", "layer": 0, "course_top_mm": 59.0},
