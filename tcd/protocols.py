@@ -217,10 +217,9 @@ class Prepare:
         course's hold, the course as built (its grains' 99th-percentile top and the plate)."""
         if phase.name != "hold":
             return {}
-        L = int(phase.info["layer"])
-        x, r = sim.positions(), sim.radii()
-        sel = sim.state_dict()["particles/layer"] == L
-        return {"course_top_mm": 1e3 * float(np.percentile(x[sel, 2] + r[sel], 99.0)),
+        L = int(phase.info["layer"])          # courses 0..L are in the mould
+        tops = obs.layer_tops(sim.positions(), sim.radii(), sim.state_dict()["particles/layer"])
+        return {"course_top_mm": 1e3 * tops[L],
                 "plate_mm": 1e3 * float(sim.walls[2].position(sim.time)[2])}
 
     def record(self, sim, phase) -> dict:
