@@ -66,14 +66,6 @@ smooth = obs.smooth
 peak_of = obs.peak_of
 
 
-def _number(value) -> float:
-    """A summary entry as a float; None (JSON null) and junk become NaN."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def _relative_error(value: float, reference: float) -> float:
     return (value - reference) / reference if reference else math.nan
 
@@ -89,13 +81,14 @@ def table2_rows(summary: dict) -> list[dict]:
     """
     experiment = {**EXPERIMENT, **(summary.get("experiment") or {})}
     paper = {**PAPER_SIMULATION, **(summary.get("paper_simulation") or {})}
-    tau_exp, d_exp = _number(experiment["tau_peak_MPa"]), _number(experiment["d_peak_mm"])
+    tau_exp = obs.as_number(experiment["tau_peak_MPa"])
+    d_exp = obs.as_number(experiment["d_peak_mm"])
     samples = summary.get("samples") or []
     mean, std = summary.get("mean") or {}, summary.get("std") or {}
 
     def run_stat(key):
-        m, s = _number(mean.get(key)), _number(std.get(key))
-        values = np.array([_number(smp.get(key)) for smp in samples], dtype=float)
+        m, s = obs.as_number(mean.get(key)), obs.as_number(std.get(key))
+        values = np.array([obs.as_number(smp.get(key)) for smp in samples], dtype=float)
         values = values[np.isfinite(values)]
         if not math.isfinite(m) and values.size:
             m = float(values.mean())
@@ -115,8 +108,8 @@ def table2_rows(summary: dict) -> list[dict]:
 
     return [
         row("experiments", tau_exp, d_exp, reference=False),
-        row("paper simulations (LMGC90)", _number(paper["tau_peak_MPa"]),
-            _number(paper["d_peak_mm"]), n_samples=5),
+        row("paper simulations (LMGC90)", obs.as_number(paper["tau_peak_MPa"]),
+            obs.as_number(paper["d_peak_mm"]), n_samples=5),
         row(f"tcd (this run, mean ± std of {n} samples)", tau_run, d_run, tau_std, d_std, n)
         if n != 1 else
         # one sample has no spread: its std (0 in the runner's summary) is not shown
@@ -184,12 +177,12 @@ def load_sample(seed: str, directory: Path) -> SampleCurves:
     if displacement.size == 0:
         raise ValueError(f"{path}: empty series")
     time = np.asarray(series.get("time", np.arange(displacement.size)), dtype=float)
-    window = _number(attrs.get("smoothing_window"))
+    window = obs.as_number(attrs.get("smoothing_window"))
     if not window > 0:
         window = DEFAULT_SMOOTHING_WINDOW
     smoothed = smooth(stress, displacement, window)
     tau_peak, d_peak, index = peak_of(displacement, stress, window)
-    tau_attr, d_attr = _number(attrs.get("tau_peak")), _number(attrs.get("d_peak"))
+    tau_attr, d_attr = obs.as_number(attrs.get("tau_peak")), obs.as_number(attrs.get("d_peak"))
     if math.isfinite(tau_attr) and math.isfinite(d_attr):
         # the runner's numbers are the ones reported; the index follows its displacement
         tau_peak, d_peak = tau_attr, d_attr
@@ -496,8 +489,8 @@ def _bonds_total(sample: SampleCurves, summary: dict | None) -> float:
         return float(sum(float(s[k][0]) for k in
                          ("bonds_intact", "bonds_broken_tension", "bonds_broken_shear") if k in s))
     for smp in (summary or {}).get("samples") or []:
-        if str(smp.get("seed")) == sample.seed and _number(smp.get("bonds_total")) > 0:
-            return _number(smp["bonds_total"])
+        if str(smp.get("seed")) == sample.seed and obs.as_number(smp.get("bonds_total")) > 0:
+            return obs.as_number(smp["bonds_total"])
     return math.nan
 
 

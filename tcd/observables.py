@@ -128,12 +128,12 @@ def peak_of(displacement, stress, window) -> tuple[float, float, int]:
     return float(top), float(displacement[index]), index
 
 
-def _finite(value) -> float:
+def as_number(value) -> float:
+    """A summary entry as a float; None (JSON null) and junk become NaN."""
     try:
-        value = float(value)
+        return float(value)
     except (TypeError, ValueError):
         return math.nan
-    return value if math.isfinite(value) else math.nan
 
 
 def study_statistics(samples, experiment=None) -> tuple[dict, dict, dict]:
@@ -147,7 +147,7 @@ def study_statistics(samples, experiment=None) -> tuple[dict, dict, dict]:
     experiment = {**PAPER_EXPERIMENT, **(experiment or {})}
     mean, std = {}, {}
     for key in STUDY_KEYS:
-        values = np.array([_finite(smp.get(key)) for smp in samples], dtype=float)
+        values = np.array([as_number(smp.get(key)) for smp in samples], dtype=float)
         values = values[np.isfinite(values)]
         if values.size:
             mean[key], std[key] = float(values.mean()), float(values.std())

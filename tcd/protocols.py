@@ -50,7 +50,6 @@ from . import observables as obs
 from . import packing
 from .walls import Wall, cylinder, plane
 
-PAPER_EXPERIMENT, PAPER_SIMULATION = obs.PAPER_EXPERIMENT, obs.PAPER_SIMULATION
 SETTLE_CHECK_EVERY = 50
 
 

@@ -31,7 +31,8 @@ import numpy as np
 from . import __version__, backend, io
 from . import observables as obs
 from .state import MAX_SYSTEMS
-from .protocols import PAPER_EXPERIMENT, PAPER_SIMULATION, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
+from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
+from .protocols import PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
 
 FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
               "walls/kind", "walls/point", "walls/direction", "walls/radius", "walls/extent",
@@ -190,8 +191,9 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
                         for k, v in backend_now.items() if k in started and started[k] != v]
         if changed:
             raise ValueError(f"{out}: --resume with a scenario other than the one this run "
-                             f"started with ({stored}): {io.shown_differences(changed)}. Resume with that scenario and "
-                             "backend, or start a new run in another --out directory")
+                             f"started with ({stored}): {io.shown_differences(changed)}. Resume "
+                             "with that scenario and backend, or start a new run in another "
+                             "--out directory")
         return
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a directory")
