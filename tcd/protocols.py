@@ -213,12 +213,15 @@ class Prepare:
     # -- records -------------------------------------------------------------------------------
     def phase_end(self, sim, phase) -> dict:
         """Numbers kept with the record of a phase that has just ended: at the end of a
-        course's hold, the course as built (its grains' 99th-percentile top and the plate)."""
+        course's hold, the course as built (its grains' 99th-percentile top, its highest
+        grain's top and the plate)."""
         if phase.name != "hold":
             return {}
         L = int(phase.info["layer"])          # courses 0..L are in the mould
-        tops = obs.layer_tops(sim.positions(), sim.radii(), sim.state_dict()["particles/layer"])
+        x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
+        tops = obs.layer_tops(x, r, layer)
         return {"course_top_mm": 1e3 * tops[L],
+                "course_highest_top_mm": 1e3 * float((x[layer == L, 2] + r[layer == L]).max()),
                 "plate_mm": 1e3 * float(sim.walls[2].position(sim.time)[2])}
 
     def record(self, sim, phase) -> dict:
@@ -233,15 +236,17 @@ class Prepare:
         return row
 
     @staticmethod
-    def as_built(phases, courses: int) -> list:
+    def as_built(phases, courses: int, key: str = "course_top_mm") -> list:
         """Each course's height as built (mm): its top when its own hold ended, from the top of
         the course below at the end of that one's hold (the first from the bottom plate).
-        `phases` are the stage's phase records (runner: result["phases"]); None for a course
-        whose record lacks its top (a run resumed from a checkpoint older than the record)."""
+        `phases` are the stage's phase records (runner: result["phases"]); `key` the top read
+        (`course_top_mm`, the 99th percentile of the grain tops; `course_highest_top_mm`, the
+        highest grain: where a plate lowered onto the course rests); None for a course whose
+        record lacks it (a run resumed from a checkpoint older than the record)."""
         tops = [None] * courses
         for rec in phases or ():
-            if rec.get("phase") == "hold" and "course_top_mm" in rec:
-                tops[int(rec["layer"])] = float(rec["course_top_mm"])
+            if rec.get("phase") == "hold" and key in rec:
+                tops[int(rec["layer"])] = float(rec[key])
         below = [0.0] + tops[:-1]
         return [None if t is None or b is None else t - b for t, b in zip(tops, below)]
 
@@ -251,6 +256,7 @@ class Prepare:
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
+        top = float((x[:, 2] + r).max())
         nl = len(tops)
         area = math.pi * self.radius**2
         vol = 4.0 / 3.0 * math.pi * r**3
@@ -275,6 +281,8 @@ class Prepare:
             "packing_fraction_per_layer": [obs.packing_fraction(x, r, self.radius, bounds[L], bounds[L + 1])
                                            for L in range(nl)],
             "course_heights_as_built_mm": self.as_built(phases, nl),
+            "course_heights_by_highest_grain_mm": self.as_built(phases, nl,
+                                                                "course_highest_top_mm"),
             "course_lift_heights_mm": [1e3 * (lifts[k + 1] - lifts[k]) for k in range(nl)],
             "course_packing_fraction_per_lift": [float(vol[layer == L].sum()) / (area * (lifts[L + 1] - lifts[L]))
                                                  for L in range(nl)],
@@ -290,6 +298,13 @@ class Prepare:
             "outside": int(np.count_nonzero((rho + r > self.radius + slack) | (x[:, 2] - r < -slack)
                                             | (x[:, 2] + r > H + slack))),
             "sample_height_mm": 1e3 * H,
+            # the grains' own top: where a plate lowered onto the finished sample would rest
+            # (the shear stage rests its plate there), its gap to the top plate, and the
+            # packing over that height (the full-size samples end below their plate)
+            "highest_grain_top_mm": 1e3 * top,
+            "top_plate_gap_mm": 1e3 * (H - top),
+            "packing_fraction_below_highest_grain": obs.packing_fraction(x, r, self.radius, 0.0,
+                                                                         min(top, H)),
             "target_sample_height_mm": self.cfg.sample_height_mm,
             "diameter_mm": 2e3 * self.radius,
         }

@@ -93,6 +93,14 @@ def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
     built = sample["stages"]["0:prepare"]["course_heights_as_built_mm"]
     assert built[0] == pytest.approx(holds[0]["course_top_mm"], rel=1e-12)
     assert built[1] == pytest.approx(holds[1]["course_top_mm"] - holds[0]["course_top_mm"], rel=1e-12)
+    # read by the highest grain (where a plate lowered onto the course rests): at or above
+    # the 99th percentile, never through the plate
+    for rec in holds:
+        assert rec["course_top_mm"] <= rec["course_highest_top_mm"] <= rec["plate_mm"] + slack
+    top = sample["stages"]["0:prepare"]["course_heights_by_highest_grain_mm"]
+    assert top[0] == pytest.approx(holds[0]["course_highest_top_mm"], rel=1e-12)
+    assert top[1] == pytest.approx(holds[1]["course_highest_top_mm"] - holds[0]["course_highest_top_mm"],
+                                   rel=1e-12)
 
 
 def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, capsys):
@@ -107,7 +115,11 @@ def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, c
     assert numbers["course_heights_as_built_mm"] == pytest.approx(built, rel=1e-12)
     assert table.main([str(scenario), str(out / "sample_3" / "prepared.h5")]) == 0
     row = capsys.readouterr().out.splitlines()[2]
-    assert row.endswith(f"| {built[0]:.1f} / {built[1]:.1f} |")
+    prep = sample["stages"]["0:prepare"]
+    top = prep["course_heights_by_highest_grain_mm"]
+    assert row.endswith(f"| {built[0]:.1f} / {built[1]:.1f} | {top[0]:.1f} / {top[1]:.1f} | "
+                        f"{prep['highest_grain_top_mm']:.1f}, "
+                        f"{prep['top_plate_gap_mm']:.1f} | {prep['packing_fraction_below_highest_grain']:.3f} |")
 
 
 def test_courses_as_built_from_phase_records():
@@ -118,6 +130,9 @@ def test_courses_as_built_from_phase_records():
     # a run resumed from a checkpoint written before the record existed: nothing made up
     assert Prepare.as_built(recs[2:], 2) == [None, None]
     assert Prepare.as_built(recs[:2], 2) == [59.0, None]
+    recs[1]["course_highest_top_mm"], recs[2]["course_highest_top_mm"] = 59.6, 119.2
+    assert Prepare.as_built(recs, 2, "course_highest_top_mm") == pytest.approx([59.6, 59.6])
+    assert Prepare.as_built(recs, 2) == pytest.approx([59.0, 60.5])
 
 
 def test_same_scenario_same_numbers_with_parallel_samples(micro_run, tmp_path):

@@ -53,6 +53,19 @@ def test_twin_packing_overlap_and_containment(twin):
     assert prep["coordination_number"] > 3.0
 
 
+def test_twin_grains_top_and_packing_below_it(twin):
+    """The sample read by its grains: their highest top lies between the surface course's
+    99th-percentile top and the plate (no grain through it), and the packing over that height
+    holds the same sphere volume as the packing between the plates."""
+    _, prep, _ = twin
+    H, top = prep["sample_height_mm"], prep["highest_grain_top_mm"]
+    slack = 0.01 * 2 * 0.4                        # 1 % of the twin's smallest diameter (mm)
+    assert prep["layer_tops_mm"][-1] <= top <= H + slack
+    assert prep["top_plate_gap_mm"] == pytest.approx(H - top, abs=1e-9)
+    assert prep["packing_fraction_below_highest_grain"] * min(top, H) == pytest.approx(
+        prep["packing_fraction"] * H, rel=1e-9)
+
+
 def test_twin_prepared_file_matches_summary(twin):
     out, prep, _ = twin
     arrays, meta = io.load_checkpoint(out / "sample_1" / "prepared.h5")
