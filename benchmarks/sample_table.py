@@ -43,8 +43,9 @@ def main(argv=None) -> int:
           "packing per layer (slabs) | packing | largest overlap / d_min | outside | coordination | "
           "course lifts, 99th-percentile tops (mm) | packing per lift (own grains) | "
           "surface grains below the binder's top (deepest, mm) | courses as built (mm) | "
-          "courses by their highest grain (mm) | grains' top, gap to the plate (mm) | packing below the grains' top |")
-    print("|---" * 16 + "|")
+          "courses as built, by their highest grain (mm) | courses by their highest grain (mm) | "
+          "grains' top, gap to the plate (mm) | packing below the grains' top |")
+    print("|---" * 17 + "|")
     fmt = lambda v, f: " / ".join(f.format(u) for u in v)
     built = lambda v: ("not recorded" if all(u is None for u in v)
                        else " / ".join("-" if u is None else f"{u:.1f}" for u in v))
@@ -57,7 +58,8 @@ def main(argv=None) -> int:
               f"{fmt(s['course_packing_fraction_per_lift'], '{:.3f}')} | "
               f"{s['grains_in_lower_course'][-1]} ({s['deepest_grain_below_lower_top_mm'][-1]:.1f}) | "
               f"{built(s['course_heights_as_built_mm'])} | "
-              f"{built(s['course_heights_by_highest_grain_mm'])} | "
+              f"{built(s['course_heights_as_built_by_highest_grain_mm'])} | "
+              f"{fmt(s['course_heights_by_highest_grain_mm'], '{:.1f}')} | "
               f"{s['highest_grain_top_mm']:.1f}, {s['top_plate_gap_mm']:.1f} | "
               f"{s['packing_fraction_below_highest_grain']:.3f} |")
     if len(rows) > 1:
@@ -69,10 +71,11 @@ def main(argv=None) -> int:
               f"{fmt(mean('course_lift_heights_mm'), '{:.1f}')} | "
               f"{fmt(mean('course_packing_fraction_per_lift'), '{:.3f}')} | "
               f"{mean('grains_in_lower_course')[-1]:.0f} | | | "
+              f"{fmt(mean('course_heights_by_highest_grain_mm'), '{:.1f}')} | "
               f"{mean('highest_grain_top_mm'):.1f}, {mean('top_plate_gap_mm'):.1f} | "
               f"{mean('packing_fraction_below_highest_grain'):.3f} |")
     print("| target (issue 5; paper) | about 5200 | 150, 120 | 60 +- 2 | | 0.57 to 0.61 (0.584 to 0.59) "
-          "| < 1 % | 0 | | | | | 60 +- 2 | 60 +- 2 | 120 | |")
+          "| < 1 % | 0 | | | | | 60 +- 2 | 60 +- 2 | 60 +- 2 | 120 | |")
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

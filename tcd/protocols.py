@@ -257,6 +257,7 @@ class Prepare:
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
         top = float((x[:, 2] + r).max())
+        highest = [0.0] + [float((x[layer == L, 2] + r[layer == L]).max()) for L in range(len(tops))]
         nl = len(tops)
         area = math.pi * self.radius**2
         vol = 4.0 / 3.0 * math.pi * r**3
@@ -281,8 +282,11 @@ class Prepare:
             "packing_fraction_per_layer": [obs.packing_fraction(x, r, self.radius, bounds[L], bounds[L + 1])
                                            for L in range(nl)],
             "course_heights_as_built_mm": self.as_built(phases, nl),
-            "course_heights_by_highest_grain_mm": self.as_built(phases, nl,
-                                                                "course_highest_top_mm"),
+            "course_heights_as_built_by_highest_grain_mm": self.as_built(phases, nl,
+                                                                         "course_highest_top_mm"),
+            # the finished sample read the same way: each course from the highest grain of the
+            # course below to its own highest grain (where a plate lowered onto it would rest)
+            "course_heights_by_highest_grain_mm": [1e3 * (highest[k + 1] - highest[k]) for k in range(nl)],
             "course_lift_heights_mm": [1e3 * (lifts[k + 1] - lifts[k]) for k in range(nl)],
             "course_packing_fraction_per_lift": [float(vol[layer == L].sum()) / (area * (lifts[L + 1] - lifts[L]))
                                                  for L in range(nl)],

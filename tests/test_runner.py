@@ -97,7 +97,7 @@ def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
     # the 99th percentile, never through the plate
     for rec in holds:
         assert rec["course_top_mm"] <= rec["course_highest_top_mm"] <= rec["plate_mm"] + slack
-    top = sample["stages"]["0:prepare"]["course_heights_by_highest_grain_mm"]
+    top = sample["stages"]["0:prepare"]["course_heights_as_built_by_highest_grain_mm"]
     assert top[0] == pytest.approx(holds[0]["course_highest_top_mm"], rel=1e-12)
     assert top[1] == pytest.approx(holds[1]["course_highest_top_mm"] - holds[0]["course_highest_top_mm"],
                                    rel=1e-12)
@@ -116,8 +116,9 @@ def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, c
     assert table.main([str(scenario), str(out / "sample_3" / "prepared.h5")]) == 0
     row = capsys.readouterr().out.splitlines()[2]
     prep = sample["stages"]["0:prepare"]
-    top = prep["course_heights_by_highest_grain_mm"]
+    top, end = prep["course_heights_as_built_by_highest_grain_mm"], prep["course_heights_by_highest_grain_mm"]
     assert row.endswith(f"| {built[0]:.1f} / {built[1]:.1f} | {top[0]:.1f} / {top[1]:.1f} | "
+                        f"{end[0]:.1f} / {end[1]:.1f} | "
                         f"{prep['highest_grain_top_mm']:.1f}, "
                         f"{prep['top_plate_gap_mm']:.1f} | {prep['packing_fraction_below_highest_grain']:.3f} |")
 
