@@ -718,4 +718,55 @@ def _info_checkpoint(f: h5py.File) -> list[str]:
     keys = ", ".join(map(str, meta)) if isinstance(meta, dict) else "(unreadable)"
     lines = [f"meta keys: {keys}", f"arrays: {len(entries)}"]
     lines += [f"  {name}: {ds.dtype} {ds.shape}" for name, ds in entries]
+    return lines + _info_sample({name: ds for name, ds in entries})
+
+
+_SAMPLE_KEYS = ("particles/x", "particles/radius", "particles/layer", "walls/kind", "walls/point",
+                "walls/direction", "walls/radius", "walls/force")
+
+
+def _info_sample(ds: dict) -> list[str]:
+    """The sample a checkpoint holds, when it is grains in a mould (a cylinder between a bottom
+    and a top plate, as `prepared.h5` files are): its size, packing, courses and overlaps, read
+    from the arrays alone (no scenario needed). Nothing for other checkpoints."""
+    if not all(k in ds for k in _SAMPLE_KEYS):
+        return []
+    from . import observables as obs
+    from .walls import CYLINDER, PLANE
+    x, r, layer = (_read(ds[k]) for k in _SAMPLE_KEYS[:3])
+    kind, point, direction, radius, force = (_read(ds[k]) for k in _SAMPLE_KEYS[3:])
+    cyl = np.flatnonzero(kind == CYLINDER)
+    top = np.flatnonzero((kind == PLANE) & (direction[:, 2] < -0.5))
+    bottom = np.flatnonzero((kind == PLANE) & (direction[:, 2] > 0.5))
+    if len(x) == 0 or len(cyl) != 1 or len(top) != 1 or len(bottom) != 1:
+        return []                       # not one mould (a sheared sample has two rings)
+    R = float(radius[cyl[0]])
+    z0, H = float(point[bottom[0], 2]), float(point[top[0], 2])
+    if H <= z0:
+        return []
+    tops = x[:, 2] + r
+    highest = float(tops.max())
+    ids = sorted(set(layer.tolist()))
+    counts = [int(np.count_nonzero(layer == L)) for L in ids]
+    peaks = [z0] + [float(tops[layer == L].max()) for L in ids]
+    p99 = [z0] + obs.layer_tops(x, r, layer)
+    mm = lambda v: " / ".join(f"{1e3 * u:.1f}" for u in v)
+    gap = f"{1e3 * (H - highest):.1f} mm below the top plate" if H - highest >= 5e-5 else "at the top plate"
+    lines = ["sample (grains in a mould, read from the arrays):",
+             f"  {len(x)} particles ({' + '.join(map(str, counts))} in courses {ids}), diameters "
+             f"{2e3 * r.min():.3g} to {2e3 * r.max():.3g} mm",
+             f"  mould: diameter {2e3 * R:.1f} mm, plates at {1e3 * z0:.1f} and {1e3 * H:.1f} mm "
+             f"(force of the grains on the top plate {force[top[0], 2]:.3g} N)",
+             f"  packing between the plates {obs.packing_fraction(x, r, R, z0, H):.3f}; highest grain "
+             f"top {1e3 * highest:.1f} mm ({gap}), "
+             f"packing below it {obs.packing_fraction(x, r, R, z0, min(highest, H)):.3f}",
+             f"  courses by their highest grain {mm(np.diff(peaks))} mm; by their 99th-percentile "
+             f"tops {mm(np.diff(p99))} mm",
+             f"  outside the mould: {int(np.count_nonzero(np.hypot(x[:, 0], x[:, 1]) + r > R + 0.02 * r.min()))}"
+             f" (by more than 1 % of the smallest diameter)"]
+    if "contacts/gap" in ds and "contacts/j" in ds:
+        gap, j = _read(ds["contacts/gap"]), _read(ds["contacts/j"])
+        lines.append(f"  contacts: {len(gap)}, coordination {obs.coordination_number(None, j, len(x)):.2f}, "
+                     f"largest overlap {100 * obs.max_overlap(gap) / (2 * r.min()):.2f} % of the "
+                     f"smallest diameter")
     return lines

@@ -418,6 +418,44 @@ def test_info_summarises_states_series_and_checkpoints(tmp_path):
     io.save_checkpoint(checkpoint, {"x": np.zeros((4, 3))}, {"step": 4})
     text = io.info(checkpoint)
     assert "checkpoint" in text and "x: float64 (4, 3)" in text and "step" in text
+    assert "sample (grains" not in text           # not grains in a mould: no sample section
+
+
+def test_info_reads_a_prepared_sample_from_its_arrays(tmp_path):
+    """Grains in a mould (a cylinder between two plates): `tcd info` gives the sample's size,
+    packing and courses from the arrays alone. Two columns of spheres of known sizes."""
+    from tcd.walls import CYLINDER, PLANE
+    r = np.array([0.002, 0.002, 0.001, 0.001, 0.001])
+    z = np.array([0.002, 0.006, 0.009, 0.011, 0.013])           # two courses, touching
+    x = np.column_stack([np.array([0.0, 0.0, 0.003, 0.003, 0.003]), np.zeros(5), z])
+    layer = np.array([0, 0, 1, 1, 1], np.int32)
+    R, H = 0.01, 0.015
+    arrays = {"particles/x": x, "particles/radius": r, "particles/layer": layer,
+              "walls/kind": np.array([PLANE, CYLINDER, PLANE], np.int32),
+              "walls/point": np.array([[0, 0, 0], [0, 0, 0], [0, 0, H]], float),
+              "walls/direction": np.array([[0, 0, 1], [0, 0, 1], [0, 0, -1]], float),
+              "walls/radius": np.array([R, R, R]),
+              "walls/force": np.array([[0, 0, -0.5], [0, 0, 0], [0, 0, 0.25]]),
+              "contacts/gap": np.array([0.0, -4e-6, 0.0]), "contacts/j": np.array([1, 3, 5], np.int32)}
+    path = tmp_path / "prepared.h5"
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    text = io.info(path)
+    solid = float(np.sum(4 / 3 * np.pi * r**3))
+    assert "5 particles (2 + 3 in courses [0, 1]), diameters 2 to 4 mm" in text
+    assert "mould: diameter 20.0 mm, plates at 0.0 and 15.0 mm (force of the grains on the top plate 0.25 N)" in text
+    assert f"packing between the plates {solid / (np.pi * R**2 * H):.3f}" in text
+    assert f"highest grain top 14.0 mm (1.0 mm below the top plate), packing below it {solid / (np.pi * R**2 * 0.014):.3f}" in text
+    assert "courses by their highest grain 8.0 / 6.0 mm" in text
+    assert "outside the mould: 0" in text
+    # two particle contacts (partners below n = 5), one with the wall; 4 um of overlap over 2 mm
+    assert "contacts: 3, coordination 0.80, largest overlap 0.20 % of the smallest diameter" in text
+    # the top plate lowered onto the highest grain; a second cylinder (two rings): no section
+    arrays["walls/point"][2, 2] = 0.014
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    assert "highest grain top 14.0 mm (at the top plate)" in io.info(path)
+    arrays["walls/kind"][0] = CYLINDER
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    assert "sample (grains" not in io.info(path)
 
 
 @pytest.mark.parametrize("kind", ["checkpoint", "series"])
