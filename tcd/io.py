@@ -744,26 +744,30 @@ def _info_sample(ds: dict) -> list[str]:
     z0, H = float(point[bottom[0], 2]), float(point[top[0], 2])
     if H <= z0:
         return []
-    tops = x[:, 2] + r
-    highest = float(tops.max())
+    highest = float((x[:, 2] + r).max())
     ids = sorted(set(layer.tolist()))
     counts = [int(np.count_nonzero(layer == L)) for L in ids]
-    peaks = [z0] + [float(tops[layer == L].max()) for L in ids]
+    peaks = [z0] + obs.layer_highest(x, r, layer)
     p99 = [z0] + obs.layer_tops(x, r, layer)
     mm = lambda v: " / ".join(f"{1e3 * u:.1f}" for u in v)
-    gap = f"{1e3 * (H - highest):.1f} mm below the top plate" if H - highest >= 5e-5 else "at the top plate"
+    plate_gap = (f"{1e3 * (H - highest):.1f} mm below the top plate" if H - highest >= 5e-5
+                 else "at the top plate")
+    # outside: through the mould (about its own axis) or a plate by more than 1 % of d_min
+    slack = 0.02 * float(r.min())
+    rho = np.hypot(x[:, 0] - point[cyl[0], 0], x[:, 1] - point[cyl[0], 1])
+    outside = int(np.count_nonzero((rho + r > R + slack) | (x[:, 2] - r < z0 - slack)
+                                   | (x[:, 2] + r > H + slack)))
     lines = ["sample (grains in a mould, read from the arrays):",
              f"  {len(x)} particles ({' + '.join(map(str, counts))} in courses {ids}), diameters "
              f"{2e3 * r.min():.3g} to {2e3 * r.max():.3g} mm",
              f"  mould: diameter {2e3 * R:.1f} mm, plates at {1e3 * z0:.1f} and {1e3 * H:.1f} mm "
              f"(force of the grains on the top plate {force[top[0], 2]:.3g} N)",
              f"  packing between the plates {obs.packing_fraction(x, r, R, z0, H):.3f}; highest grain "
-             f"top {1e3 * highest:.1f} mm ({gap}), "
+             f"top {1e3 * highest:.1f} mm ({plate_gap}), "
              f"packing below it {obs.packing_fraction(x, r, R, z0, min(highest, H)):.3f}",
              f"  courses by their highest grain {mm(np.diff(peaks))} mm; by their 99th-percentile "
              f"tops {mm(np.diff(p99))} mm",
-             f"  outside the mould: {int(np.count_nonzero(np.hypot(x[:, 0], x[:, 1]) + r > R + 0.02 * r.min()))}"
-             f" (by more than 1 % of the smallest diameter)"]
+             f"  outside the mould: {outside} (by more than 1 % of the smallest diameter)"]
     if "contacts/gap" in ds and "contacts/j" in ds:
         gap, j = _read(ds["contacts/gap"]), _read(ds["contacts/j"])
         lines.append(f"  contacts: {len(gap)}, coordination {obs.coordination_number(None, j, len(x)):.2f}, "

@@ -41,6 +41,13 @@ def packing_fraction(x, r, radius: float, z0: float, z1: float) -> float:
     return solid / (math.pi * radius**2 * (z1 - z0))
 
 
+def layer_highest(x, r, layer) -> list[float]:
+    """Height of each layer's highest grain top (m): where a plate lowered onto the layer would
+    rest."""
+    tops = np.asarray(x)[:, 2] + np.asarray(r)
+    return [float(tops[layer == L].max()) for L in sorted(set(np.asarray(layer).tolist()))]
+
+
 def layer_tops(x, r, layer) -> list[float]:
     """Height of the top of each layer: 99th percentile of particle tops, robust to a few
     grains that ride up (m)."""

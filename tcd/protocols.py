@@ -221,7 +221,7 @@ class Prepare:
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
         tops = obs.layer_tops(x, r, layer)
         return {"course_top_mm": 1e3 * tops[L],
-                "course_highest_top_mm": 1e3 * float((x[layer == L, 2] + r[layer == L]).max()),
+                "course_highest_top_mm": 1e3 * obs.layer_highest(x, r, layer)[L],
                 "plate_mm": 1e3 * float(sim.walls[2].position(sim.time)[2])}
 
     def record(self, sim, phase) -> dict:
@@ -257,7 +257,7 @@ class Prepare:
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
         top = float((x[:, 2] + r).max())
-        highest = [0.0] + [float((x[layer == L, 2] + r[layer == L]).max()) for L in range(len(tops))]
+        highest = [0.0] + obs.layer_highest(x, r, layer)
         nl = len(tops)
         area = math.pi * self.radius**2
         vol = 4.0 / 3.0 * math.pi * r**3

@@ -449,6 +449,14 @@ def test_info_reads_a_prepared_sample_from_its_arrays(tmp_path):
     assert "outside the mould: 0" in text
     # two particle contacts (partners below n = 5), one with the wall; 4 um of overlap over 2 mm
     assert "contacts: 3, coordination 0.80, largest overlap 0.20 % of the smallest diameter" in text
+    # a grain through the mould (about its axis), one through the top plate
+    arrays["particles/x"] = x + np.array([[0.0085, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0.0015]])
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    assert "outside the mould: 2 " in io.info(path)
+    arrays["walls/point"][1] = [-0.0085, 0, 0]               # the mould moved away: all out
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    assert "outside the mould: 5 " in io.info(path)
+    arrays["particles/x"], arrays["walls/point"][1] = x, [0, 0, 0]
     # the top plate lowered onto the highest grain; a second cylinder (two rings): no section
     arrays["walls/point"][2, 2] = 0.014
     io.save_checkpoint(path, arrays, {"time": 1.0})

@@ -59,3 +59,15 @@ def test_study_statistics_average_finite_values_and_compare_with_the_experiments
     _, _, rel = obs.study_statistics(samples, {"tau_peak_MPa": 1.0})
     assert rel["tau_peak"] == pytest.approx(0.0)
     assert obs.study_statistics([{"seed": 1}]) == ({}, {}, {})
+
+
+def test_layer_highest_and_99th_percentile_tops():
+    """Each layer's highest grain top (where a plate would rest) and the 99th percentile of its
+    grain tops: 101 grains of one layer stacked 1 mm apart, and one grain of another."""
+    z = np.concatenate([np.arange(101) * 1e-3, [0.5]])
+    x = np.column_stack([np.zeros(102), np.zeros(102), z])
+    r = np.full(102, 2e-4)
+    layer = np.array([1] * 101 + [0])
+    assert obs.layer_highest(x, r, layer) == pytest.approx([0.5002, 0.1002], rel=1e-12)
+    # 99th percentile of 0.0002 .. 0.1002 in steps of 1 mm, linear interpolation: 0.0992
+    assert obs.layer_tops(x, r, layer) == pytest.approx([0.5002, 0.0992], rel=1e-12)
