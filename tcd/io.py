@@ -744,19 +744,16 @@ def _info_sample(ds: dict) -> list[str]:
     z0, H = float(point[bottom[0], 2]), float(point[top[0], 2])
     if H <= z0:
         return []
-    highest = float((x[:, 2] + r).max())
     ids = sorted(set(layer.tolist()))
     counts = [int(np.count_nonzero(layer == L)) for L in ids]
     peaks = [z0] + obs.layer_highest(x, r, layer)
+    highest = max(peaks[1:])
     p99 = [z0] + obs.layer_tops(x, r, layer)
     mm = lambda v: " / ".join(f"{1e3 * u:.1f}" for u in v)
     plate_gap = (f"{1e3 * (H - highest):.1f} mm below the top plate" if H - highest >= 5e-5
                  else "at the top plate")
-    # outside: through the mould (about its own axis) or a plate by more than 1 % of d_min
-    slack = 0.02 * float(r.min())
-    rho = np.hypot(x[:, 0] - point[cyl[0], 0], x[:, 1] - point[cyl[0], 1])
-    outside = int(np.count_nonzero((rho + r > R + slack) | (x[:, 2] - r < z0 - slack)
-                                   | (x[:, 2] + r > H + slack)))
+    # through the mould (about its own axis) or a plate by more than 1 % of d_min
+    outside = obs.outside(x, r, R, z0, H, axis=point[cyl[0], :2])
     lines = ["sample (grains in a mould, read from the arrays):",
              f"  {len(x)} particles ({' + '.join(map(str, counts))} in courses {ids}), diameters "
              f"{2e3 * r.min():.3g} to {2e3 * r.max():.3g} mm",

@@ -41,6 +41,16 @@ def packing_fraction(x, r, radius: float, z0: float, z1: float) -> float:
     return solid / (math.pi * radius**2 * (z1 - z0))
 
 
+def outside(x, r, radius: float, z0: float, z1: float, axis=(0.0, 0.0)) -> int:
+    """Spheres that poke through a mould (a vertical cylinder of `radius` about `axis`, x and
+    y) or its plates at z0 and z1 by more than 1 % of the smallest diameter."""
+    x, r = np.asarray(x), np.asarray(r)
+    slack = 0.01 * 2 * float(r.min())
+    rho = np.hypot(x[:, 0] - axis[0], x[:, 1] - axis[1])
+    return int(np.count_nonzero((rho + r > radius + slack) | (x[:, 2] - r < z0 - slack)
+                                | (x[:, 2] + r > z1 + slack)))
+
+
 def layer_highest(x, r, layer) -> list[float]:
     """Height of each layer's highest grain top (m): where a plate lowered onto the layer would
     rest."""

@@ -256,8 +256,8 @@ class Prepare:
         x, r, layer = sim.positions(), sim.radii(), sim.state_dict()["particles/layer"]
         H = float(sim.walls[2].position(sim.time)[2]) if len(sim.walls) > 2 else self.cfg.sample_height_mm * 1e-3
         tops = obs.layer_tops(x, r, layer)
-        top = float((x[:, 2] + r).max())
         highest = [0.0] + obs.layer_highest(x, r, layer)
+        top = max(highest)                        # the sample's highest grain
         nl = len(tops)
         area = math.pi * self.radius**2
         vol = 4.0 / 3.0 * math.pi * r**3
@@ -271,8 +271,6 @@ class Prepare:
         # the pores of the course below (centre below its top), with the depth of the deepest
         lifts = [0.0] + tops[:-1] + [H]
         c = sim.contact_arrays()
-        rho = np.hypot(x[:, 0], x[:, 1])
-        slack = 0.01 * 2 * float(r.min())         # 1 % of the smallest diameter
         return {
             "particles": int(sim.n),
             "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(nl)],
@@ -299,8 +297,7 @@ class Prepare:
             "coordination_number": obs.coordination_number(c["i"], c["j"], sim.n),
             "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),
             # a sphere is outside when it pokes through a wall by more than 1 % of d_min
-            "outside": int(np.count_nonzero((rho + r > self.radius + slack) | (x[:, 2] - r < -slack)
-                                            | (x[:, 2] + r > H + slack))),
+            "outside": obs.outside(x, r, self.radius, 0.0, H),
             "sample_height_mm": 1e3 * H,
             # the grains' own top: where a plate lowered onto the finished sample would rest
             # (the shear stage rests its plate there), its gap to the top plate, and the

@@ -71,3 +71,17 @@ def test_layer_highest_and_99th_percentile_tops():
     assert obs.layer_highest(x, r, layer) == pytest.approx([0.5002, 0.1002], rel=1e-12)
     # 99th percentile of 0.0002 .. 0.1002 in steps of 1 mm, linear interpolation: 0.0992
     assert obs.layer_tops(x, r, layer) == pytest.approx([0.5002, 0.0992], rel=1e-12)
+
+
+def test_outside_counts_spheres_through_the_mould_or_a_plate_beyond_the_slack():
+    """The slack is 1 % of the smallest diameter: 0.02 mm for 1 mm radii in a 10 mm mould."""
+    r = np.full(5, 1e-3)
+    x = np.array([[0.0, 0, 0.005],               # well inside
+                  [0.009 + 1.5e-5, 0, 0.005],    # through the mould by 0.015 mm: inside the slack
+                  [0.009 + 2.5e-5, 0, 0.005],    # by 0.025 mm: outside
+                  [0.0, 0, 0.001 - 2.5e-5],      # through the bottom plate
+                  [0.0, 0, 0.009 + 2.5e-5]])     # through the top plate at 10 mm
+    assert obs.outside(x, r, 0.01, 0.0, 0.01) == 3
+    # the mould's axis moved by 1 mm along x: the grain at the centre line stays in, the
+    # two near its wall at +x are further in, and none is pushed out on the -x side
+    assert obs.outside(x, r, 0.01, 0.0, 0.01, axis=(0.001, 0.0)) == 2
