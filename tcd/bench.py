@@ -127,6 +127,9 @@ def check_trace(path) -> None:
         parent = pathlib.Path(path).parent
         if not parent.is_dir():
             raise FileNotFoundError(f"trace {path}: no such directory {parent}")
+        if pathlib.Path(path).is_dir():
+            raise ValueError(f"trace {path}: is a directory; give a file name, e.g. "
+                             f"{pathlib.Path(path) / 'steps.csv'}")
 
 
 def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:

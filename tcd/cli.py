@@ -12,6 +12,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -192,6 +193,22 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _joined_frames(argv: list) -> list:
+    """`--frames -1,-2` as `--frames=-1,-2`: argparse takes a value that starts with '-' and is
+    not a plain negative number for an option, although negative frame indices count from the
+    end."""
+    out, k = [], 0
+    while k < len(argv):
+        if (argv[k] == "--frames" and k + 1 < len(argv) and isinstance(argv[k + 1], str)
+                and re.fullmatch(r"-\d+(,\s*-?\d+)*,?", argv[k + 1])):
+            out.append(f"--frames={argv[k + 1]}")
+            k += 2
+        else:
+            out.append(argv[k])
+            k += 1
+    return out
+
+
 def _frames(text):
     if text is None or text == "all":
         return text
@@ -231,6 +248,13 @@ def cmd_export(args) -> int:
     pvd = [str(w) for w in written if w.suffix == ".pvd"]
     print(f"wrote {len(written) - len(pvd)} VTK files into {args.out}; open in ParaView: "
           + ", ".join(pvd))
+    new = {w.name for w in written}
+    older = sorted(f.name for w in written if w.suffix == ".pvd"
+                   for f in w.parent.glob(w.stem + "_*.vtu") if f.name not in new)
+    if older:
+        print(f"tcd: note: {len(older)} .vtu files of an earlier export are also in {args.out} "
+              f"(e.g. {older[0]}); the .pvd files list this export's frames only",
+              file=sys.stderr)
     return 0
 
 
@@ -253,8 +277,21 @@ def cmd_figures(args) -> int:
     if len(run_dirs) > 1 and args.out is None:
         raise UsageError("several run directories (the parts of one study): give --out DIR "
                          "for their figures")
-    from .figures import make_figures
-    written = make_figures(run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out)
+    import warnings
+    from . import figures
+    category = getattr(figures, "FigureWarning", UserWarning)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", category)
+        try:
+            written = figures.make_figures(run_dirs[0] if len(run_dirs) == 1 else run_dirs,
+                                           args.out)
+        finally:
+            # the figures' warnings as one line each, not with the source line that raised them
+            for w in caught:
+                if issubclass(w.category, category):
+                    print(f"tcd: warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     for path in written:
         print(path)
     if not written:
@@ -578,6 +615,7 @@ def _error(message) -> int:
 def main(argv=None) -> int:
     """Run the `tcd` command with `argv` (default sys.argv[1:]); returns the exit status
     (argparse's own exits, --help, --version and usage errors, are returned, not raised)."""
+    argv = _joined_frames(sys.argv[1:] if argv is None else list(argv))
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:

@@ -135,7 +135,7 @@ class SolverConfig(_Model):
     alert_ratio: float = Field(0.1, gt=0)
     gravity: float = Field(9.81, ge=0)
     overlap_slop: float = Field(0.002, ge=0)
-    projection_passes: int = Field(2, ge=0)
+    projection_passes: int = Field(2, ge=0, le=10**6)
     bond_blocks: bool = True
     neighbour_skin: float = Field(2.0, ge=0)
     colouring: Literal["auto", "greedy", "rounds"] = "auto"
@@ -167,7 +167,7 @@ class SolverConfig(_Model):
 class MaterialConfig(_Model):
     """density of the grains (kg/m^3); friction: particle-particle Coulomb coefficient;
     wall_friction: particle-wall coefficient during preparation."""
-    density: float = Field(2600.0, gt=0, le=1e5)
+    density: float = Field(2600.0, ge=1.0, le=1e5)
     friction: float = Field(0.7, ge=0)
     wall_friction: float = Field(0.0, ge=0)
 
@@ -216,7 +216,7 @@ class OutputConfig(_Model):
     seconds between checkpoints; series_every: steps between time-series records."""
     snapshot_every: float = Field(0.05, gt=0)
     checkpoint_every_s: float = Field(60.0, gt=0)
-    series_every: int = Field(1, ge=1)
+    series_every: int = Field(1, ge=1, le=10**9)
 
 
 class PrepareStage(_Model):
@@ -476,6 +476,11 @@ class Scenario(_Model):
                 prepared = stage
                 continue
             key = f"stage[{k + 1}]"
+            if stage.max_sweeps is not None and self.solver.check_every > stage.max_sweeps:
+                problems.append((f"{key}.max_sweeps",
+                                 f"{stage.max_sweeps} is below [solver] check_every "
+                                 f"({self.solver.check_every}): convergence would be checked "
+                                 "only at the sweep limit"))
             if stage.duration < self.solver.time_step:
                 problems.append((f"{key}.velocity_mm_per_min",
                                  f"{stage.velocity_mm_per_min:g} mm/min covers displacement_mm "
@@ -551,11 +556,13 @@ def load_scenario(path) -> Scenario:
     return parse_scenario(text, source)
 
 
-def parse_scenario(text: str, source: str = "<string>") -> Scenario:
+def parse_scenario(text: str, source: str = "<string>", *, resolve_samples: bool = True) -> Scenario:
     """Validate the TOML `text` of a scenario; `source` names it in error messages and is the
     base directory of relative `sample` paths (the working directory for "<...>" sources).
-    Raises ScenarioError listing every problem found."""
+    Raises ScenarioError listing every problem found. `resolve_samples=False` leaves `sample`
+    paths as written and does not look for the files (to compare two runs' scenarios)."""
     source = str(source)
+    text = text.removeprefix("\ufeff")      # a byte-order mark some editors write
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -572,7 +579,7 @@ def parse_scenario(text: str, source: str = "<string>") -> Scenario:
         raise ScenarioError(source, reserved + _problems(exc)) from None
     if reserved:
         raise ScenarioError(source, reserved)
-    return _resolve_samples(scenario)
+    return _resolve_samples(scenario) if resolve_samples else scenario
 
 
 def _resolve_samples(scenario: Scenario) -> Scenario:

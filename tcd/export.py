@@ -84,7 +84,8 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
                 kk = int(k) + count if int(k) < 0 else int(k)
                 if not 0 <= kk < count:
                     raise ValueError(f"{path}: frame index {k} out of range ({count} frames)")
-                indices.append(kk)
+                if kk not in indices:           # -1 and count - 1 are one frame
+                    indices.append(kk)
         import h5py
         with h5py.File(path, "r") as f:
             text = f.attrs.get("scenario", "")
@@ -92,6 +93,7 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
         out = []
         for k in indices:
             frame = io.read_frame(path, k)
+            io.check_state(frame, f"{path}: frame {k}")
             frame["index"] = k
             out.append(frame)
         return out, _time_step(text)
@@ -108,8 +110,15 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
             for key in [k for k in frame if k.startswith("contacts/")]:
                 if key != "contacts/start":
                     frame[key] = frame[key][:m]
-        frame.update(time=float(meta.get("time", 0.0)), step=int(meta.get("step", 0)),
-                     stage=str(meta.get("stage", "")), index=0)
+        # contacts may touch the walls the arrays hold, or else those of the meta
+        walls = meta.get("walls") if isinstance(meta, dict) else None
+        io.check_state(frame, path, wall_slots=len(walls) if isinstance(walls, list) and not any(
+            k.startswith("walls/") for k in frame) else None)
+        try:
+            frame.update(time=float(meta.get("time", 0.0)), step=int(meta.get("step", 0)),
+                         stage=str(meta.get("stage", "")), index=0)
+        except (AttributeError, TypeError, ValueError):
+            raise ValueError(f"{path}: its meta's time, step or stage is not readable") from None
         return [frame], None
     raise ValueError(f"{path}: a tcd {kind} file holds no particle states (expected a states "
                      f"file, a prepared sample or a checkpoint)")

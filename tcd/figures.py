@@ -238,12 +238,25 @@ STUDY_SUMMARY_NAME = "study_summary.json"
 
 
 def _scenario_of(run_dir: Path) -> dict | None:
-    """The run's scenario.toml as a dict (None where it is missing or unreadable)."""
+    """The run's scenario.toml as its checked configuration, every default filled in (so
+    that a key written out with its default value equals a key left out, as for --resume),
+    as a dict (None where it is missing or unreadable). A scenario that no longer validates
+    (a run of an older tcd) is compared as written."""
     import tomllib
+    from .config import ScenarioError, parse_scenario
+    path = run_dir / "scenario.toml"
     try:
-        data = tomllib.loads((run_dir / "scenario.toml").read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
         return None
+    try:
+        data = parse_scenario(text, str(path), resolve_samples=False).model_dump(
+            mode="json", exclude={"text", "source"})
+    except ScenarioError:
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError:
+            return None
     return {k: v for k, v in data.items() if k not in STUDY_FREE_KEYS}
 
 
@@ -633,10 +646,17 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     several = len(run_dirs) > 1
     if several and out_dir is None:
         raise ValueError("several run directories: give the folder for their figures (--out)")
+    out_dir = Path(out_dir) if out_dir is not None else run_dirs[0] / "figures"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir}: exists and is not a directory (the figures go into "
+                         "a folder)")
     summary, samples = load_runs(run_dirs)
     run_dir = run_dirs[0]
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "figures"
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out_dir}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
     written: list[Path] = []
 
     figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written)

@@ -145,6 +145,8 @@ def atomic_path(path):
     """
     target = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(target))
+    if os.path.isdir(target):               # os.replace would fail only after all the work
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", target)
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp",
                                dir=directory)
     os.close(fd)
@@ -313,8 +315,13 @@ def _check_schema(f: h5py.File, path: str, kind: str | None) -> str:
     version = f.attrs.get("schema_version")
     if version is None:
         raise ValueError(f"{path}: missing schema_version attribute (not a tcd file)")
-    if np.ndim(version) != 0 or int(version) != SCHEMA_VERSION:
-        raise ValueError(f"{path}: unknown schema_version {version!r} "
+    try:
+        known = np.ndim(version) == 0 and int(version) == SCHEMA_VERSION
+    except (TypeError, ValueError):
+        known = False
+    if not known:
+        shown = version.tolist() if isinstance(version, np.ndarray | np.generic) else version
+        raise ValueError(f"{path}: unknown schema_version {shown!r} "
                          f"(this tcd reads version {SCHEMA_VERSION})")
     found = _file_kind(f)
     if found is None:
@@ -383,7 +390,31 @@ def _check_frame(frame: dict, units: dict | None, *, time, step, stage, where: s
                          f"got time={time!r}, step={step!r}") from None
     if not isinstance(stage, str):
         raise ValueError(f"{where}: stage must be a string, got {stage!r}")
+    return _check_arrays(frame, units, where)
 
+
+def check_state(arrays: dict, where: str, *, wall_slots: int | None = None) -> None:
+    """Check the state arrays read from a file (a states file's frame, a checkpoint's or a
+    prepared sample's arrays) against the schema before anything indexes with them: shapes,
+    dtypes, lengths that must agree, and particle and wall indices in range. `wall_slots`: the
+    wall indices contacts may use (default: the frame's walls; a checkpoint keeps its walls
+    in its meta). Keys outside FRAME_SCHEMA are not checked. Raises ValueError naming `where`."""
+    _check_arrays({k: v for k, v in arrays.items() if k in FRAME_SCHEMA}, {}, where,
+                  wall_slots=wall_slots)
+    r, x = np.asarray(arrays.get("particles/radius", [])), np.asarray(arrays["particles/x"])
+    if not np.all(np.isfinite(r) & (r > 0)):
+        bad = int(np.count_nonzero(~(np.isfinite(r) & (r > 0))))
+        raise ValueError(f"{where}: key 'particles/radius' holds {bad} radii that are not "
+                         "positive and finite")
+    if not np.all(np.isfinite(x)):
+        bad = int(np.count_nonzero(~np.all(np.isfinite(x), axis=1)))
+        raise ValueError(f"{where}: key 'particles/x' holds {bad} positions that are not finite "
+                         "(a state of a run that diverged?)")
+
+
+def _check_arrays(frame: dict, units: dict, where: str, *, wall_slots: int | None = None) -> list:
+    if "particles/x" not in frame:
+        raise ValueError(f"{where}: key 'particles/x' is required")
     sizes: dict[str, tuple[int, str]] = {}  # group -> (length, key that fixed it)
     prepared = []
     for key, value in frame.items():
@@ -411,7 +442,7 @@ def _check_frame(frame: dict, units: dict | None, *, time, step, stage, where: s
         prepared.append((key, arr, unit))
 
     n = sizes["particles"][0]
-    n_walls = sizes.get("walls", (0, ""))[0]
+    n_walls = sizes.get("walls", (0, ""))[0] if wall_slots is None else int(wall_slots)
     arrays = {key: arr for key, arr, _ in prepared}
     for key, upper in (("contacts/i", n), ("contacts/j", n + n_walls),
                        ("bonds/i", n), ("bonds/j", n)):
@@ -625,7 +656,10 @@ def load_checkpoint(path) -> tuple[dict, dict]:
         if "arrays" not in f or "meta" not in f.attrs:
             raise ValueError(f"{path}: checkpoint without 'arrays' group or 'meta' attribute")
         arrays = _datasets(f["arrays"])
-        meta = json.loads(f.attrs["meta"])
+        try:
+            meta = json.loads(f.attrs["meta"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: its 'meta' attribute is not valid JSON ({exc})") from None
     return arrays, meta
 
 
@@ -718,7 +752,15 @@ def _info_checkpoint(f: h5py.File) -> list[str]:
     keys = ", ".join(map(str, meta)) if isinstance(meta, dict) else "(unreadable)"
     lines = [f"meta keys: {keys}", f"arrays: {len(entries)}"]
     lines += [f"  {name}: {ds.dtype} {ds.shape}" for name, ds in entries]
-    return lines + _info_sample({name: ds for name, ds in entries})
+    datasets = {name: ds for name, ds in entries}
+    walls = meta.get("walls") if isinstance(meta, dict) else None
+    try:
+        check_state({k: _read(ds) for k, ds in datasets.items() if k in FRAME_SCHEMA},
+                    "arrays", wall_slots=len(walls) if isinstance(walls, list) and not any(
+                        k.startswith("walls/") for k in datasets) else None)
+    except (ValueError, OSError) as exc:
+        return lines + [f"sample: not read ({exc})"]
+    return lines + _info_sample(datasets)
 
 
 _SAMPLE_KEYS = ("particles/x", "particles/radius", "particles/layer", "walls/kind", "walls/point",

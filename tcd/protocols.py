@@ -308,7 +308,33 @@ class Prepare:
                                                                          min(top, H)),
             "target_sample_height_mm": self.cfg.sample_height_mm,
             "diameter_mm": 2e3 * self.radius,
+            "warnings": self.shortfalls(phases, 1e3 * H),
         }
+
+    def shortfalls(self, phases, height_mm: float) -> list:
+        """Where the preparation fell short of what its scenario asked (a list of sentences,
+        empty when nothing did): a pour, hold or confinement that reached its time limit before
+        the grains settled (`settle_speed`), a course whose plate stopped above its target (the
+        grains jammed: the course is taller than `layer_height_mm`), a sample taller than
+        `sample_height_mm`. Each one is printed when the stage ends and kept in summary.json."""
+        c, out = self.cfg, []
+        slack = 0.01 * c.layer_height_mm
+        for rec in phases or ():
+            name, L = rec.get("phase"), rec.get("layer", 0)
+            if rec.get("settled") is False:
+                out.append(f"{name} of course {L} ({c.courses[int(L)]}) reached its time limit "
+                           f"({rec.get('steps')} steps) before the grains settled below "
+                           f"{c.settle_speed:g} m/s")
+            if name == "hold" and "plate_mm" in rec and "target" in rec:
+                target = 1e3 * float(rec["target"])
+                if float(rec["plate_mm"]) > target + slack:
+                    out.append(f"course {L} ({c.courses[int(L)]}): its plate stopped at "
+                               f"{float(rec['plate_mm']):.2f} mm, above its target {target:.2f} "
+                               "mm: the grains jammed above it")
+        if height_mm > c.sample_height_mm + slack:
+            out.append(f"the sample is {height_mm:.2f} mm high, above sample_height_mm "
+                       f"({c.sample_height_mm:g} mm)")
+        return out
 
 
 class Shear:

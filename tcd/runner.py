@@ -122,6 +122,10 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
                 f"each other actively and must not share cores; use --jobs "
                 f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
+    # every sample a shear starts from is read before anything is written or run (a resumed
+    # sample with a checkpoint has its state there)
+    check_samples(scenario, [seed for seed in pending if not (
+        resume and (out / f"sample_{seed}" / "checkpoint.h5").is_file())])
     backend.check_available(scenario.backend.arch)     # before anything is written
     record_scenario(scenario, out, resume)
     if jobs > 1 and len(pending) > 1:
@@ -237,6 +241,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     ck_path = out / "batch_checkpoint.h5"
     if resume and not ck_path.exists():
         raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
+    if not resume:
+        check_samples(scenario, seeds)
     backend.check_available(scenario.backend.arch)     # before anything is written
     record_scenario(scenario, out, resume)
     backend.init(scenario.backend.arch, scenario.backend.precision)
@@ -300,7 +306,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             protos[seeds[0]].before_step(batch, phases[0])
             rec = batch.step()
             step_in_phase += 1
-            if step_in_phase % scenario.output.series_every == 0:
+            if step_in_phase % scenario.output.series_every == 0 or step_in_phase == steps:
                 for k, (seed, view) in enumerate(zip(seeds, views)):
                     sweeps, residual = view.solver_stats()
                     row = {"time": batch.time, "step": batch.step_index, "sweeps": sweeps,
@@ -330,7 +336,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
                                         res.get("stage_first_frame", {}).get("0"))
         numbers["wall_time_s"] = wall
-        numbers["steps"] = int(len(arrays.get("time", [])) * scenario.output.series_every)
+        numbers["steps"] = int(step_in_phase)
         res["stages"]["0:shear"] = numbers
         res["wall_time_s"]["0:shear"] = wall
         res["phases"] = [{"stage": "shear", "phase": phases[k].name, "steps": step_in_phase,
@@ -501,11 +507,18 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                     result.setdefault("stage_first_frame", {})[str(stage_idx)] = k
             bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
             bar.update(step_in_phase, sim.time)
+            stop = False
             while step_in_phase < phase.steps:
                 proto.before_step(sim, phase)
                 rec = sim.step()
                 step_in_phase += 1
-                if step_in_phase % scn.output.series_every == 0:
+                stop = (phase.settle and step_in_phase >= phase.min_steps
+                        and step_in_phase % SETTLE_CHECK_EVERY == 0
+                        and settled(sim, getattr(stage, "settle_speed", 0.005)))
+                # every series_every-th step, and each phase's last (so that a series always
+                # ends where its phase ended, whatever series_every)
+                if (step_in_phase % scn.output.series_every == 0 or stop
+                        or step_in_phase == phase.steps):
                     row = {"time": sim.time, "step": sim.step_index, "sweeps": rec.sweeps,
                            "residual": rec.residual, "contacts": rec.contacts,
                            "kinetic_energy": sim.kinetic_energy()}
@@ -521,9 +534,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                     next_snapshot = (math.floor(sim.time / every + 1e-9) + 1) * every
                 if step_in_phase % 100 == 0:
                     bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")
-                if (phase.settle and step_in_phase >= phase.min_steps
-                        and step_in_phase % SETTLE_CHECK_EVERY == 0
-                        and settled(sim, getattr(stage, "settle_speed", 0.005))):
+                if stop:
                     break
                 last_ck = _checkpoint_if_due(interrupt, last_ck, scn.output.checkpoint_every_s,
                                              timed_checkpoint, bar)
@@ -532,6 +543,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
             result.setdefault("phases", []).append({"stage": stage.kind, "stage_index": stage_idx,
                                                     "phase": phase.name,
                                                     "steps": step_in_phase, "end_time": sim.time,
+                                                    **({"settled": bool(stop)} if phase.settle else {}),
                                                     **{k: v for k, v in phase.info.items()},
                                                     **(end(sim, phase) if end else {})})
             result["last_phase"] = phase.to_json()
@@ -550,8 +562,12 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                             and rec.get("stage") == stage.kind]
             numbers = proto.finish(sim, stage_phases)
             attrs = {}
+            for text in numbers.get("warnings", []):
+                print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
         numbers["wall_time_s"] = time.perf_counter() - t_stage
-        numbers["steps"] = int(len(arrays.get("time", [])) * scn.output.series_every)
+        numbers["steps"] = int(sum(rec["steps"] for rec in result.get("phases", [])
+                                   if rec.get("stage_index", stage_idx) == stage_idx
+                                   and rec.get("stage") == stage.kind))
         result["stages"][f"{stage_idx}:{stage.kind}"] = numbers
         _write_series(sample_dir, stage.kind, arrays, attrs)
         if stage.kind == "prepare":
@@ -637,19 +653,85 @@ def restore_simulation(scn, arrays: dict, meta: dict):
     return sim
 
 
-def load_prepared(scn, path):
-    """The prepared sample at `path` (a run's sample_<seed>/prepared.h5, or a file of that
-    format) as a simulation. A run's checkpoint.h5, or a sample that already has bonds (it
-    was sheared), is refused: shearing it would shear a sample twice, or half-prepared."""
+def read_prepared(path) -> tuple[dict, dict]:
+    """The arrays and meta of the prepared sample at `path`, checked for everything a shear
+    needs from it, without building a simulation (so that `tcd run` can check every seed's
+    sample before the first one starts). Each problem is a ValueError naming the file."""
+    from .simulation import MAX_WALLS, STATE_KEYS
+    from .walls import Wall
     p = pathlib.Path(path)
     arrays, meta = io.load_checkpoint(p)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{p}: its 'meta' attribute is not a JSON object")
     if "phase_index" in meta:
         raise ValueError(f"{p}: a run checkpoint (stage {meta.get('stage')}, phase "
                          f"{meta.get('phase_index')}), not a prepared sample: give the run's "
                          "sample_<seed>/prepared.h5, or continue that run with --resume")
-    if len(arrays.get("bonds/state", ())):
+    missing = [k for k in STATE_KEYS if k not in arrays]
+    if missing:
+        raise ValueError(f"{p}: not a prepared sample: it lacks {', '.join(missing)}")
+    if len(arrays["bonds/state"]):
         raise ValueError(f"{p}: the sample has {len(arrays['bonds/state'])} bonds: it was "
                          "sheared already; a shear stage starts from an unbonded prepared sample")
+    n = np.asarray(arrays["particles/radius"]).shape[0] if np.ndim(arrays["particles/radius"]) else 0
+    if n == 0:
+        raise ValueError(f"{p}: particles/radius holds no particles")
+    m = np.asarray(arrays["contacts/i"]).reshape(-1).shape[0]
+    shapes = {"particles/x": (n, 3), "particles/v": (n, 3), "particles/w": (n, 3),
+              "particles/radius": (n,), "particles/layer": (n,), "particles/inv_mass": (n,),
+              "particles/inv_inertia": (n,), "particles/f_ext": (n, 3),
+              "contacts/i": (m,), "contacts/j": (m,), "contacts/impulse": (m, 3),
+              "contacts/gap": (m,)}
+    for key, shape in shapes.items():
+        a = np.asarray(arrays[key])
+        if a.shape != shape:
+            raise ValueError(f"{p}: {key} has shape {a.shape}, expected {shape} "
+                             f"({n} particles, {m} contacts)")
+        kinds = "iu" if key in ("particles/layer", "contacts/i", "contacts/j") else "f"
+        if a.dtype.kind not in kinds:
+            raise ValueError(f"{p}: {key} has dtype {a.dtype}, expected "
+                             + ("integers" if kinds == "iu" else "floating-point numbers"))
+        if kinds == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{p}: {key} holds non-finite values")
+    r = np.asarray(arrays["particles/radius"])
+    if not np.all(r > 0):
+        raise ValueError(f"{p}: particles/radius holds {int(np.sum(~(r > 0)))} radii <= 0")
+    i, j = np.asarray(arrays["contacts/i"]), np.asarray(arrays["contacts/j"])
+    if m and (i.min() < 0 or i.max() >= n or j.min() < 0 or j.max() >= n + MAX_WALLS):
+        raise ValueError(f"{p}: contacts/i or contacts/j index outside the {n} particles "
+                         f"(and {MAX_WALLS} wall slots)")
+    try:
+        walls = meta["walls"]
+        if not isinstance(walls, list):
+            raise TypeError("not a list")
+        for w in walls:
+            Wall.from_dict(w)
+        domain = np.asarray(meta["domain"], dtype=float)
+        if domain.shape != (2, 3) or not np.all(np.isfinite(domain)):
+            raise ValueError(f"domain must be two finite 3-vectors, got {meta['domain']!r}")
+        if not math.isfinite(float(meta["time"])):
+            raise ValueError(f"time must be finite, got {meta['time']!r}")
+    except KeyError as exc:
+        raise ValueError(f"{p}: its meta lacks {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{p}: bad meta: {exc}") from None
+    return arrays, meta
+
+
+def check_samples(scn, seeds) -> None:
+    """Read and check, for each of `seeds`, the prepared sample of every shear stage that
+    starts from a file: a bad sample of the fifth seed is reported before the first starts."""
+    for stage in scn.stages:
+        if stage.kind == "shear" and getattr(stage, "sample", ""):
+            for seed in seeds:
+                read_prepared(stage.sample.format(seed=seed))
+
+
+def load_prepared(scn, path):
+    """The prepared sample at `path` (a run's sample_<seed>/prepared.h5, or a file of that
+    format) as a simulation. A run's checkpoint.h5, or a sample that already has bonds (it
+    was sheared), is refused: shearing it would shear a sample twice, or half-prepared."""
+    arrays, meta = read_prepared(path)
     return restore_simulation(scn, arrays, meta)
 
 

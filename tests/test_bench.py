@@ -85,3 +85,5 @@ def test_a_trace_into_a_missing_folder_is_refused_before_the_run(tmp_path, monke
     monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: pytest.fail("the pour was run"))
     with pytest.raises(FileNotFoundError, match="no such directory"):
         bench.pour(particles=60, time=0.02, trace=str(tmp_path / "nope" / "pour.csv"))
+    with pytest.raises(ValueError, match="is a directory; give a file name"):
+        bench.pour(particles=60, time=0.02, trace=str(tmp_path))

@@ -6,9 +6,11 @@ import subprocess
 import sys
 import types
 
+import numpy as np
 import pytest
 
 import tcd
+from tcd import io
 from tcd.cli import main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -518,6 +520,30 @@ def test_repeated_frames_and_parts_are_exported_once(tmp_path, capsys):
     assert "wrote 1 VTK files" in capsys.readouterr().out
     pvd = (tmp_path / "vtk" / f"{SAMPLE.stem}_particles.pvd").read_text()
     assert pvd.count("<DataSet ") == 1
+
+
+def test_negative_frames_count_from_the_end_as_the_help_says(tmp_path, capsys):
+    """`--frames -1` was taken by argparse for an option ("expected one argument"), and -1
+    and N-1 were exported as two frames."""
+    from tcd.cli import _joined_frames
+    assert _joined_frames(["export", "f.h5", "--frames", "-1,-2", "--out", "v"]) == [
+        "export", "f.h5", "--frames=-1,-2", "--out", "v"]
+    assert _joined_frames(["export", "--frames", "--out"]) == ["export", "--frames", "--out"]
+    states = tmp_path / "states.h5"
+    x = np.array([[0.0, 0.0, 0.01]])
+    for k in range(3):
+        io.append_frame(states, {"particles/x": x + k, "particles/radius": np.array([0.005])},
+                        time=0.1 * k, step=k, stage="pour")
+    assert main(["export", str(states), "--out", str(tmp_path / "v"), "--parts", "particles",
+                 "--frames", "-1,2,-3"]) == 0
+    assert "wrote 2 VTK files" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "v").glob("*.vtu")) == [
+        "states_particles_000000.vtu", "states_particles_000002.vtu"]
+    # a later export of fewer frames into the same folder says the older files are there
+    assert main(["export", str(states), "--out", str(tmp_path / "v"), "--parts", "particles",
+                 "--frames", "-2"]) == 0
+    err = capsys.readouterr().err
+    assert "2 .vtu files of an earlier export are also in" in err
 
 
 def test_frame_with_an_animation_output_is_refused(tmp_path, capsys):

@@ -516,3 +516,26 @@ def test_settle_speed_must_mean_negligible_motion(tmp_path):
     err = refusal(tmp_path, MINIMAL.replace(
         'kind = "prepare"', 'kind = "prepare"\nsettle_speed = 1e9'))
     assert_names(err, "stage[1].settle_speed")
+
+
+def test_settings_that_would_fail_only_after_the_run_started_are_refused(tmp_path):
+    """projection_passes of 3e9 passed the check and failed in the solver after runs/ was
+    made; a density of 1e-300 gave NaN walls; a shear's max_sweeps below check_every."""
+    def scenario(table, shear=""):
+        return 'name = "tiny"\n' + table + MINIMAL.replace('name = "tiny"\n', "") + shear
+    err = refusal(tmp_path, scenario("[solver]\nprojection_passes = 3000000000\n"))
+    assert_names(err, "solver.projection_passes", "1000000")
+    assert len(str(err).splitlines()) == 1
+    err = refusal(tmp_path, scenario("[material]\ndensity = 1e-300\n"))
+    assert_names(err, "material.density", "1")
+    assert len(str(err).splitlines()) == 1
+    err = refusal(tmp_path, scenario("[solver]\ncheck_every = 10\n", "max_sweeps = 5\n"))
+    assert_names(err, "stage[2].max_sweeps", "check_every (10)")
+    assert load_scenario(write(tmp_path, scenario("[solver]\ncheck_every = 5\n",
+                                                  "max_sweeps = 5\n"))).stages[1].max_sweeps == 5
+
+
+def test_a_byte_order_mark_is_not_an_error(tmp_path):
+    path = tmp_path / "bom.toml"
+    path.write_bytes("\ufeff".encode() + MINIMAL.encode())
+    assert load_scenario(path).name == "tiny"

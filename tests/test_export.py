@@ -169,17 +169,23 @@ def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(ValueError, match="not a directory"):
         export.export(states, tmp_path / "file")
-    # io refuses to write such indices; a file edited by hand may still hold them
+    # io refuses to write such indices; a file edited by hand may still hold them: the frame
+    # is checked when it is read, whatever part is exported
     import h5py
-    bad = tmp_path / "bad.h5"
-    io.append_frame(bad, frame(), time=0.0, step=0, stage="x")
-    with h5py.File(bad, "a") as f:
-        f["frames/000000/bonds/j"][1] = 4           # a bond to body 4 (a wall): impossible
-        f["frames/000000/contacts/j"][2] = 6        # wall 2 of 2
-    with pytest.raises(ValueError, match="bonds/i or bonds/j .*4 particles, 0 walls"):
-        export.export(bad, tmp_path / "vtk2", parts=["bonds"])
-    with pytest.raises(ValueError, match="contacts/i or contacts/j .*4 particles, 2 walls"):
-        export.export(bad, tmp_path / "vtk2", parts=["contacts"])
+    for key, value, message in (
+            ("bonds/j", 4, r"frame 0: key 'bonds/j' has indices in \[3, 4\], expected \[0, 4\)"),
+            ("contacts/j", 6, r"frame 0: key 'contacts/j' has indices in \[\d, 6\], "
+                              r"expected \[0, 6\) with N=4, W=2"),
+            ("particles/radius", -1.0, "1 radii that are not positive and finite"),
+            ("particles/x", np.nan, "1 positions that are not finite")):
+        bad = tmp_path / f"bad_{key.replace('/', '_')}.h5"
+        io.append_frame(bad, frame(), time=0.0, step=0, stage="x")
+        with h5py.File(bad, "a") as f:
+            f[f"frames/000000/{key}"][1] = value     # a bond to body 4 (a wall), wall 2 of 2, ...
+        for part in ("particles", "bonds"):
+            with pytest.raises(ValueError, match=message):
+                export.export(bad, tmp_path / "vtk2", parts=[part])
+    assert not (tmp_path / "vtk2").exists()
 
 
 def test_an_interrupted_export_leaves_the_previous_files_whole(states, tmp_path, monkeypatch):

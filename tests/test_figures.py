@@ -237,6 +237,26 @@ def test_figures_of_a_split_study_refuse_a_seed_twice_and_another_scenario(tmp_p
         make_figures(runs)
 
 
+def test_parts_of_a_study_are_compared_by_their_checked_settings(tmp_path):
+    """A part whose scenario wrote out a default value (`density = 2600.0`) was refused as
+    "another scenario", unlike --resume, which compares the checked settings; the sample
+    files need not exist any more to compare."""
+    valid = ('name = "synthetic"\nseeds = [11, 12, 13]\n[bond]\nyield_stress_MPa = 1.6\n'
+             '[[stage]]\nkind = "shear"\nsample = "gone/s_{seed}.h5"\n')
+    (tmp_path / "same").mkdir()
+    runs = _split_study(tmp_path / "same", scenario=valid.replace(
+        "[bond]", "[material]\ndensity = 2600.0\n[bond]"))
+    (runs[0] / "scenario.toml").write_text(valid.replace("[11, 12, 13]", "[11, 12]"))
+    make_figures(runs, tmp_path / "out", render=False)
+    assert (tmp_path / "out" / "table2.md").is_file()
+    (tmp_path / "other").mkdir()
+    runs = _split_study(tmp_path / "other", scenario=valid.replace(
+        "[bond]", "[material]\ndensity = 2650.0\n[bond]"))
+    (runs[0] / "scenario.toml").write_text(valid.replace("[11, 12, 13]", "[11, 12]"))
+    with pytest.raises(ValueError, match=r"material.density: 2600.0 -> 2650.0"):
+        make_figures(runs, tmp_path / "out2", render=False)
+
+
 def test_figures_of_a_split_study_warn_about_different_backends(tmp_path):
     runs = _split_study(tmp_path, arch="gpu")
     with pytest.warns(FigureWarning, match="cpu/f64 and .* on gpu/f64"):

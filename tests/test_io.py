@@ -490,3 +490,58 @@ def test_a_byte_damaged_on_disk_is_a_read_error_not_wrong_numbers(tmp_path, kind
             io.load_checkpoint(path)
         else:
             io.read_series(path)
+
+
+def test_states_read_back_are_checked_before_anything_indexes_with_them(tmp_path):
+    """A file edited or damaged outside tcd (a short radius array, a contact index past the
+    particles, radii stored as text, a negative radius, a NaN position) gave IndexErrors or
+    NumPy broadcasting errors deep inside `tcd info`, `export` and `analyse`."""
+    f = make_frame()
+    io.check_state(f, "ok")                               # as written: fine
+    n = len(f["particles/x"])
+    bad = {
+        "short radius": ({"particles/radius": f["particles/radius"][:3]},
+                         "key 'particles/radius' has length 3 but 'particles/x' has 7"),
+        "index": ({"contacts/i": f["contacts/i"] + n}, "key 'contacts/i' has indices in"),
+        "text radius": ({"particles/radius": np.array([b"a"] * n)}, "has dtype |S1"),
+        "negative": ({"particles/radius": -f["particles/radius"]}, "7 radii that are not positive"),
+        "nan x": ({"particles/x": np.where(np.arange(n)[:, None] == 2, np.nan, f["particles/x"])},
+                  "1 positions that are not finite"),
+    }
+    for name, (change, message) in bad.items():
+        with pytest.raises(ValueError, match=re.escape(message)):
+            io.check_state({**f, **change}, f"file.h5 ({name})")
+    # a checkpoint keeps its walls in its meta: wall_slots says how many contacts may touch
+    no_walls = {k: v for k, v in f.items() if not k.startswith("walls/")}
+    io.check_state(no_walls, "ckpt", wall_slots=3)
+    with pytest.raises(ValueError, match=r"expected \[0, 8\) with N=7, W=1"):
+        io.check_state({**no_walls, "contacts/j": np.array([0, 9] * 4 + [0], np.int32)}, "ckpt",
+                       wall_slots=1)
+    # tcd info still lists such a checkpoint's arrays, and says why it shows no sample
+    path = tmp_path / "damaged.h5"
+    io.save_checkpoint(path, {**f, "particles/radius": f["particles/radius"][:3]}, {"time": 0.0})
+    text = io.info(path)
+    assert "particles/radius: float64 (3,)" in text
+    assert "sample: not read (arrays: key 'particles/radius' has length 3" in text
+
+
+def test_unreadable_meta_and_schema_are_named_with_the_file(tmp_path):
+    path = tmp_path / "c.h5"
+    io.save_checkpoint(path, {"particles/x": np.zeros((1, 3))}, {"time": 0.0})
+    with h5py.File(path, "a") as f:
+        f.attrs["meta"] = "{time: 0"
+    with pytest.raises(ValueError, match=re.escape(f"{path}: its 'meta' attribute is not valid JSON")):
+        io.load_checkpoint(path)
+    for version, shown in ((2, "2"), ("two", "'two'")):
+        with h5py.File(path, "a") as f:
+            f.attrs["schema_version"] = version
+        with pytest.raises(ValueError, match=re.escape(f"{path}: unknown schema_version {shown} ")):
+            io.load_checkpoint(path)
+
+
+def test_atomic_path_onto_a_directory_fails_before_the_work(tmp_path):
+    (tmp_path / "out.h5").mkdir()
+    with pytest.raises(IsADirectoryError, match="is a directory, not a file"):
+        with io.atomic_path(tmp_path / "out.h5"):
+            pytest.fail("the body ran")
+    assert [p.name for p in tmp_path.iterdir()] == ["out.h5"]       # no temporary file left

@@ -534,3 +534,93 @@ def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_r
     assert len(rows) == 19
     assert np.mean([int(r["sweeps"]) for r in rows]) == pytest.approx(res["mean_sweeps"])
     assert float(rows[-1]["residual"]) == pytest.approx(res["final_residual"], rel=1e-5)
+
+
+def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp_path, capsys):
+    """A five-seed shear study whose last sample file is bad stopped after hours, when that
+    seed's turn came; now every seed's file is read and checked before anything runs."""
+    _, out = micro_run
+    good = out / "sample_3" / "prepared.h5"
+    import shutil
+    shutil.copy(good, tmp_path / "s_3.h5")
+    arrays, meta = io.load_checkpoint(good)
+    cases = {
+        "not_tcd": (None, "missing schema_version attribute"),
+        "no_radius": ({k: v for k, v in arrays.items() if k != "particles/radius"},
+                      "not a prepared sample: it lacks particles/radius"),
+        "short_x": ({**arrays, "particles/x": arrays["particles/x"][:-1]},
+                    r"particles/x has shape \(\d+, 3\), expected"),
+        "negative_radius": ({**arrays, "particles/radius": -arrays["particles/radius"]},
+                            r"particles/radius holds \d+ radii <= 0"),
+        "bad_contact": ({**arrays, "contacts/i": arrays["contacts/i"] + len(arrays["particles/x"])},
+                        "contacts/i or contacts/j index outside"),
+    }
+    for name, (bad, message) in cases.items():
+        path = tmp_path / "s_4.h5"
+        path.unlink(missing_ok=True)
+        if bad is None:
+            import h5py
+            with h5py.File(path, "w") as f:
+                f["x"] = np.zeros(3)
+        else:
+            io.save_checkpoint(path, bad, meta)
+        scenario = tmp_path / f"{name}.toml"
+        scenario.write_text(_shear_only((tmp_path / "s_{seed}.h5").as_posix(), "[3, 4]"))
+        run_dir = tmp_path / f"run_{name}"
+        assert cli.main(["run", str(scenario), "--out", str(run_dir)]) == 2, name
+        err = capsys.readouterr().err
+        assert str(path) in err and __import__("re").search(message, err), (name, err)
+        assert not run_dir.exists(), name           # nothing ran, nothing was written
+
+
+def test_a_series_ends_where_its_phase_ended_whatever_series_every(micro_run, tmp_path):
+    """series_every larger than the shear's steps crashed after the shear had run (its series
+    was empty), and the summary's step count was the records times series_every."""
+    _, out = micro_run
+    text = _shear_only((out / "sample_3" / "prepared.h5").as_posix())
+    text = text.replace("[output]\n", "[output]\nseries_every = 7\n", 1)
+    text = text.replace("displacement_mm = 0.2", "displacement_mm = 0.03")
+    scenario = tmp_path / "sparse.toml"
+    scenario.write_text(text)
+    assert cli.main(["run", str(scenario), "--out", str(tmp_path / "sparse")]) == 0
+    s = io.read_series(tmp_path / "sparse" / "sample_3" / "shear_series.h5")
+    steps = int(round(0.03e-3 / (600e-3 / 60) / 5e-4))            # 6 steps of 5e-4 s
+    summary = json.loads((tmp_path / "sparse" / "sample_3" / "summary.json").read_text())
+    assert summary["stages"]["0:shear"]["steps"] == steps
+    assert len(s["time"]) == 1 and np.asarray(s["step"])[-1] - np.asarray(s["step"])[0] == 0
+    assert np.asarray(s["displacement"])[-1] == pytest.approx(0.03e-3, rel=1e-9)
+
+
+def test_preparation_shortfalls_are_named():
+    """A pour or hold stopped by its time limit, a course's plate above its target, a sample
+    taller than asked: each is a sentence of summary.json's `warnings` (and printed)."""
+    from tcd.config import parse_scenario
+    from tcd.protocols import Prepare
+    scn = parse_scenario(MICRO)
+    proto = Prepare(scn.stages[0], scn, 3)
+    phases = [{"phase": "pour", "layer": 0, "steps": 600, "settled": False},
+              {"phase": "hold", "layer": 0, "steps": 50, "settled": True, "target": 4e-3,
+               "plate_mm": 4.03},                       # within 1 % of the 4 mm course
+              {"phase": "pour", "layer": 1, "steps": 300, "settled": True},
+              {"phase": "hold", "layer": 1, "steps": 200, "settled": False, "target": 8e-3,
+               "plate_mm": 8.5}]
+    found = proto.shortfalls(phases, 8.5)
+    assert len(found) == 4
+    assert "pour of course 0 (binder) reached its time limit (600 steps)" in found[0]
+    assert "hold of course 1 (surface) reached its time limit" in found[1]
+    assert "course 1 (surface): its plate stopped at 8.50 mm, above its target 8.00 mm" in found[2]
+    assert "the sample is 8.50 mm high, above sample_height_mm (8 mm)" in found[3]
+    # records of runs before `settled` was kept say nothing either way
+    assert proto.shortfalls([{"phase": "pour", "layer": 0, "steps": 600}], 8.0) == []
+
+
+def test_a_run_records_whether_each_settling_phase_settled(micro_run):
+    _, out = micro_run
+    sample = json.loads((out / "sample_3" / "summary.json").read_text())
+    settling = [rec for rec in sample["phases"] if rec["phase"] in ("pour", "hold", "confine")]
+    assert len(settling) == 5 and all(isinstance(rec["settled"], bool) for rec in settling)
+    assert "settled" not in [k for rec in sample["phases"] if rec["phase"] == "vibrate" for k in rec]
+    prep = sample["stages"]["0:prepare"]
+    assert isinstance(prep["warnings"], list)
+    unsettled = [rec for rec in settling if not rec["settled"]]
+    assert sum("reached its time limit" in w for w in prep["warnings"]) == len(unsettled)
