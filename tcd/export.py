@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import tomllib
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -90,12 +91,19 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
         with h5py.File(path, "r") as f:
             text = f.attrs.get("scenario", "")
             text = text.decode() if isinstance(text, bytes) else str(text)
-        out = []
+        out, diverged = [], []
         for k in indices:
             frame = io.read_frame(path, k)
-            io.check_state(frame, f"{path}: frame {k}")
+            # a diverged run's frames are still worth looking at: kept, and named
+            io.check_state(frame, f"{path}: frame {k}", finite_positions=False)
+            if not np.all(np.isfinite(frame["particles/x"])):
+                diverged.append(k)
             frame["index"] = k
             out.append(frame)
+        if diverged:
+            shown = ", ".join(map(str, diverged[:5])) + (" ..." if len(diverged) > 5 else "")
+            print(f"tcd: warning: {path}: {len(diverged)} frame(s) hold positions that are not "
+                  f"finite (a run that diverged?): {shown}", file=sys.stderr)
         return out, _time_step(text)
     if kind == io.FILE_CHECKPOINT:
         if not (isinstance(frames, str) and frames == "all") and list(frames) not in ([0], [-1]):
@@ -113,7 +121,10 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
         # contacts may touch the walls the arrays hold, or else those of the meta
         walls = meta.get("walls") if isinstance(meta, dict) else None
         io.check_state(frame, path, wall_slots=len(walls) if isinstance(walls, list) and not any(
-            k.startswith("walls/") for k in frame) else None)
+            k.startswith("walls/") for k in frame) else None, finite_positions=False)
+        if not np.all(np.isfinite(frame["particles/x"])):
+            print(f"tcd: warning: {path}: its state holds positions that are not finite (a run "
+                  "that diverged?)", file=sys.stderr)
         try:
             frame.update(time=float(meta.get("time", 0.0)), step=int(meta.get("step", 0)),
                          stage=str(meta.get("stage", "")), index=0)

@@ -393,12 +393,15 @@ def _check_frame(frame: dict, units: dict | None, *, time, step, stage, where: s
     return _check_arrays(frame, units, where)
 
 
-def check_state(arrays: dict, where: str, *, wall_slots: int | None = None) -> None:
+def check_state(arrays: dict, where: str, *, wall_slots: int | None = None,
+                finite_positions: bool = True) -> None:
     """Check the state arrays read from a file (a states file's frame, a checkpoint's or a
     prepared sample's arrays) against the schema before anything indexes with them: shapes,
     dtypes, lengths that must agree, and particle and wall indices in range. `wall_slots`: the
     wall indices contacts may use (default: the frame's walls; a checkpoint keeps its walls
-    in its meta). Keys outside FRAME_SCHEMA are not checked. Raises ValueError naming `where`."""
+    in its meta). `finite_positions=False` lets non-finite positions pass (a frame of a run
+    that diverged, to be looked at). Keys outside FRAME_SCHEMA are not checked. Raises
+    ValueError naming `where`."""
     _check_arrays({k: v for k, v in arrays.items() if k in FRAME_SCHEMA}, {}, where,
                   wall_slots=wall_slots)
     r, x = np.asarray(arrays.get("particles/radius", [])), np.asarray(arrays["particles/x"])
@@ -406,7 +409,7 @@ def check_state(arrays: dict, where: str, *, wall_slots: int | None = None) -> N
         bad = int(np.count_nonzero(~(np.isfinite(r) & (r > 0))))
         raise ValueError(f"{where}: key 'particles/radius' holds {bad} radii that are not "
                          "positive and finite")
-    if not np.all(np.isfinite(x)):
+    if finite_positions and not np.all(np.isfinite(x)):
         bad = int(np.count_nonzero(~np.all(np.isfinite(x), axis=1)))
         raise ValueError(f"{where}: key 'particles/x' holds {bad} positions that are not finite "
                          "(a state of a run that diverged?)")

@@ -155,7 +155,7 @@ def test_a_prepared_sample_or_checkpoint_exports_its_one_state(tmp_path):
         export.export(path, tmp_path / "vtk", frames=[1])
 
 
-def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path):
+def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path, capsys):
     with pytest.raises(ValueError, match="frame index 5 out of range \\(2 frames\\)"):
         export.export(states, tmp_path / "vtk", frames=[5])
     with pytest.raises(ValueError, match="parts spheres"):
@@ -176,8 +176,7 @@ def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path):
             ("bonds/j", 4, r"frame 0: key 'bonds/j' has indices in \[3, 4\], expected \[0, 4\)"),
             ("contacts/j", 6, r"frame 0: key 'contacts/j' has indices in \[\d, 6\], "
                               r"expected \[0, 6\) with N=4, W=2"),
-            ("particles/radius", -1.0, "1 radii that are not positive and finite"),
-            ("particles/x", np.nan, "1 positions that are not finite")):
+            ("particles/radius", -1.0, "1 radii that are not positive and finite")):
         bad = tmp_path / f"bad_{key.replace('/', '_')}.h5"
         io.append_frame(bad, frame(), time=0.0, step=0, stage="x")
         with h5py.File(bad, "a") as f:
@@ -186,6 +185,17 @@ def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path):
             with pytest.raises(ValueError, match=message):
                 export.export(bad, tmp_path / "vtk2", parts=[part])
     assert not (tmp_path / "vtk2").exists()
+    # a frame of a run that diverged is exported (to be looked at), and named
+    bad = tmp_path / "diverged.h5"
+    for k in range(3):
+        f = frame(shift=0.001 * k)
+        if k == 1:
+            f["particles/x"][2] = np.nan
+        io.append_frame(bad, f, time=0.1 * k, step=k, stage="x")
+    written = export.export(bad, tmp_path / "vtk3", parts=["particles"])
+    assert len(written) == 4
+    assert "1 frame(s) hold positions that are not finite (a run that diverged?): 1" in \
+        capsys.readouterr().err
 
 
 def test_an_interrupted_export_leaves_the_previous_files_whole(states, tmp_path, monkeypatch):

@@ -511,6 +511,7 @@ def test_states_read_back_are_checked_before_anything_indexes_with_them(tmp_path
     for name, (change, message) in bad.items():
         with pytest.raises(ValueError, match=re.escape(message)):
             io.check_state({**f, **change}, f"file.h5 ({name})")
+    io.check_state({**f, **bad["nan x"][0]}, "diverged", finite_positions=False)
     # a checkpoint keeps its walls in its meta: wall_slots says how many contacts may touch
     no_walls = {k: v for k, v in f.items() if not k.startswith("walls/")}
     io.check_state(no_walls, "ckpt", wall_slots=3)
