@@ -369,7 +369,10 @@ class ShearStage(_Model):
     shear"). `renumber`: number
     the particles along the shear (x) before bonding (`Simulation.renumber`): cheaper steps on
     the partitioned schedule (on one thread it depends on the sweep order: README,
-    "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index)."""
+    "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index).
+    `ring_edges`: where a ring ends, "rim" (its inner circle: a grain beyond the ring's end
+    touches it only there) or "extended" (the ring's wall reaches one grain radius further:
+    the geometry of sessions 1-31, which the shipped study's scenarios keep; walls.py)."""
     kind: Literal["shear"]
     displacement_mm: float = Field(2.5, gt=0)
     velocity_mm_per_min: float = Field(50.0, gt=0)
@@ -382,6 +385,7 @@ class ShearStage(_Model):
     max_sweeps: Optional[int] = Field(None, ge=1, le=10**7)
     sample: str = ""
     renumber: bool = False
+    ring_edges: Literal["rim", "extended"] = "rim"
 
     @property
     def displacement(self) -> float:

@@ -179,13 +179,29 @@ def wall_geometry(wl: ti.template(), k, x, r):
         valid = 1
     else:
         s = rel.dot(d)
-        if s >= wl.lo[k] - r and s <= wl.hi[k] + r:
+        lo, hi = wl.lo[k], wl.hi[k]
+        reach = r * (1.0 + wl.rim[k])         # rim: up to 2 r beyond an end (an alert margin)
+        if s >= lo - reach and s <= hi + reach:
             perp = rel - s * d
             rho = perp.norm()
             if rho > 0.0:
-                n = perp / rho
-                gap = wl.radius[k] - rho - r
-                valid = 1
+                e = perp / rho
+                if (s >= lo and s <= hi) or wl.rim[k] == 0:
+                    # along the shell (or its extension by r beyond the ends: "extended")
+                    n = e
+                    gap = wl.radius[k] - rho - r
+                    valid = 1
+                else:
+                    # beyond an end, the rim: the circle of the inner radius at that end;
+                    # from the centre to its nearest point (closer than r only within r of
+                    # the end; the range above also holds those an alert distance away)
+                    edge = lo if s < lo else hi
+                    c = (edge - s) * d + (wl.radius[k] - rho) * e
+                    dist = c.norm()
+                    if dist > 0.0:
+                        n = c / dist
+                        gap = dist - r
+                        valid = 1
     return gap, n, valid
 
 
@@ -194,6 +210,15 @@ def bonded_intact(bd: ti.template(), i, j):
     found = 0
     for k in range(bd.start[i], bd.start[i + 1]):
         if bd.j[k] == j and bd.state[k] == 0:
+            found = 1
+    return found
+
+
+@ti.func
+def bonded_broken(bd: ti.template(), i, j):
+    found = 0
+    for k in range(bd.start[i], bd.start[i + 1]):
+        if bd.j[k] == j and bd.state[k] != 0:
             found = 1
     return found
 
@@ -321,9 +346,10 @@ def contact_fill(p, wl, nb, bd, ct, alert: float, h: float) -> None:
 
 
 @ti.kernel
-def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float,
-                     theta: float, mu: float, extrap: float):
-    """Frame, gap at the predicted configuration, Delassus diagonal, friction, warm start:
+def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
+                     h: float, theta: float, mu: float, mu_break: float, extrap: float):
+    """Frame, gap at the predicted configuration, Delassus diagonal, friction (`mu` between
+    particles, `mu_break` between two whose bond broke, each wall's own), warm start:
     the contact's impulse of the last step R_n, or with `extrap` = c > 0, where the contact also
     carried an impulse the step before, R_n + c (R_n - R_n-1) (then the cone's normal half:
     a negative normal impulse starts from zero; the first visit projects the rest)."""
@@ -348,6 +374,9 @@ def contact_geometry(p: ti.template(), wl: ti.template(), ct: ti.template(), h: 
             gap = dist - ri - rj
             vj, wj = p.v_old[j], p.w_old[j]
             im_j, ii_j = p.inv_mass[j], p.inv_inertia[j]
+            if mu_break != mu:
+                if bonded_broken(bd, i, j) == 1:
+                    f = mu_break
         else:
             kw = j - p.count[None]
             gap, n, valid = wall_geometry(wl, kw, p.x[i], ri)

@@ -372,9 +372,10 @@ class Shear:
             plane((0, 0, 0), (0, 0, 1), radius=R, friction=f, name="bottom plate"),
             # each ring reaches at least its plate: a sample taller than two rings has no hole
             cylinder((0, 0, 0), (0, 0, 1), R, (min(z_i - c.ring_height_mm * 1e-3, 0.0), z_i - half_gap),
-                     friction=f, name="lower ring"),
+                     friction=f, name="lower ring", edges=c.ring_edges),
             cylinder((0, 0, 0), (0, 0, 1), R, (z_i + half_gap, max(z_i + c.ring_height_mm * 1e-3, H)),
-                     friction=f, motion="constant", velocity=v, start=t, name="upper ring"),
+                     friction=f, motion="constant", velocity=v, start=t, name="upper ring",
+                     edges=c.ring_edges),
             plane((0, 0, H), (0, 0, -1), radius=R, friction=f, motion="constant", velocity=v,
                   start=t, name="top plate"),
         ]

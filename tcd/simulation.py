@@ -460,6 +460,7 @@ class Simulation:
                 raise ValueError(f"wall {w.name!r} is tagged with system {w.system}, but the "
                                  f"simulation has {self.systems} system(s)")
         put(wf.system, np.array([w.system for w in walls], np.int32))
+        put(wf.rim, np.array([int(w.edges == "rim") for w in walls], np.int32))
         wf.count[None] = len(walls)
         self._moving = any(w.motion != "fixed" for w in walls)
         self._move_walls(t, force=True)
@@ -514,7 +515,8 @@ class Simulation:
             sk.bonds_prepare(p, bd, h, theta, self.time + h, *self._bond_law_args(), extrap)
             if s.bond_blocks:
                 sk.bonds_factor(p, bd)
-        ck.contact_geometry(p, wl, self.contacts, h, theta, self.friction, extrap)
+        ck.contact_geometry(p, wl, bd, self.contacts, h, theta, self.friction,
+                            self.bond_law.friction_after_break, extrap)
 
     def _step(self) -> None:
         s = self.settings
@@ -774,12 +776,17 @@ class Simulation:
         self.alert = max(reach, 1e-300)
         saved_count = self.wall_fields.count[None]
         self.wall_fields.count[None] = 0
+        # a list built for the contacts' alert distance need not hold every pair within
+        # `reach` (a larger range, and margins partly used since the list was built): a new
+        # one for it, and a new one again at the next step (any list gives the same numbers)
+        self._neighbours_valid = False
         try:
             self._build_contacts()
             m = int(self.contacts.total[None])
             pairs = np.stack([get(self.contacts.i, m), get(self.contacts.j, m)], axis=1)
         finally:
             self.alert = saved_alert
+            self._neighbours_valid = False
             release(self.bonds)
             self.bonds = saved_bonds
             release(self.contacts)

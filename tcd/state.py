@@ -194,7 +194,8 @@ class Particles:
 class WallFields:
     """Device copy of the walls: kind (0 plane, 1 cylinder), point, direction, radius, axial
     range lo/hi, friction, velocity over the current step (m/s) and force from the particles
-    over the last step (N); system: the batched system whose particles it touches (-1: all)."""
+    over the last step (N); system: the batched system whose particles it touches (-1: all);
+    rim: a cylinder's ends (walls.Wall.edges: 1 "rim", 0 "extended")."""
     pool_args = ()
 
     def __init__(self, capacity: int = MAX_WALLS):
@@ -203,6 +204,7 @@ class WallFields:
         self.point, self.direction, self.velocity, self.force = _vec(m), _vec(m), _vec(m), _vec(m)
         self.radius, self.lo, self.hi, self.friction = _real(m), _real(m), _real(m), _real(m)
         self.system = _int(m)
+        self.rim = _int(m)              # a cylinder's ends: 1 its rim only, 0 extended
         self.count = _scalar()
 
     def reset(self):

@@ -10,8 +10,16 @@ Geometry conventions (SI units):
 - plane: `point` on the plane, `direction` the unit normal pointing INTO the granular domain;
   `radius` is only the size of the plate drawn by the renderer.
 - cylinder: `point` on the axis, `direction` the unit axis, `radius` the inner radius,
-  `extent` = (lo, hi) the axial range of the shell relative to `point`; a particle interacts
-  with the shell when its centre's axial coordinate lies within [lo - r, hi + r].
+  `extent` = (lo, hi) the axial range of the shell relative to `point`. A sphere whose centre's
+  axial coordinate s lies within [lo, hi] touches the shell along the radius. Beyond its ends,
+  `edges` says what the shell is there:
+  - "rim" (the default): nothing but its rim, the circle of the inner radius at lo (or hi); the
+    sphere touches it where its distance to that circle is below r, along the line from its
+    centre to the circle's nearest point (a ring of the Leutner box ends at its rim);
+  - "extended": the shell reaches r beyond each end, with the radial gap and normal (the
+    geometry of sessions 1-31: the shipped study's scenarios keep it, `ring_edges`, so that
+    their results stay reproducible; it adds a phantom wall of up to one grain radius on
+    either side of the shear box's gap).
 """
 from __future__ import annotations
 
@@ -24,6 +32,7 @@ import numpy as np
 PLANE, CYLINDER = 0, 1
 KINDS = {"plane": PLANE, "cylinder": CYLINDER}
 MOTIONS = ("fixed", "constant", "sine")
+EDGES = ("rim", "extended")
 
 Vec = Tuple[float, float, float]
 
@@ -38,7 +47,8 @@ class Wall:
     frequency in Hz. start (s) is
     when the motion begins (the wall rests at `point` before). friction: Coulomb coefficient
     against particles. system: in a batch of independent systems (Simulation.batch), the one
-    whose particles the wall touches; -1 (default): every particle.
+    whose particles the wall touches; -1 (default): every particle. edges: a cylinder's ends,
+    "rim" or "extended" (module docstring).
     """
     kind: str
     point: Vec
@@ -53,10 +63,13 @@ class Wall:
     start: float = 0.0
     name: str = ""
     system: int = -1
+    edges: str = "rim"
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"wall {self.name!r}: unknown kind {self.kind!r} (plane, cylinder)")
+        if self.edges not in EDGES:
+            raise ValueError(f"wall {self.name!r}: unknown edges {self.edges!r} {EDGES}")
         if self.motion not in MOTIONS:
             raise ValueError(f"wall {self.name!r}: unknown motion {self.motion!r} {MOTIONS}")
         for key in ("point", "direction", "velocity", "amplitude"):
@@ -118,7 +131,10 @@ class Wall:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Wall":
+        """A wall from `to_dict`'s dict. A cylinder written before walls had `edges` (tcd
+        before session 31's last commits) keeps the geometry it ran with: "extended"."""
         d = dict(d)
+        d.setdefault("edges", "extended")
         for key in ("point", "direction", "velocity", "amplitude", "extent"):
             if key in d:
                 d[key] = tuple(d[key])

@@ -17,17 +17,30 @@ NU = 0.3
 
 
 def J(t):
-    return laws.creep_compliance(t, K_M, ETA_M, K_K, ETA_K)
+    """The Burgers creep compliance as PHYSICS.md section 4 writes it (the oracle: written out
+    here, not taken from tcd.laws, which the solver's own formula mirrors)."""
+    t = np.asarray(t, dtype=float)
+    return 1.0 / K_M + t / ETA_M + (1.0 / K_K) * (1.0 - np.exp(-t / (ETA_K / K_K)))
+
+
+def test_the_laws_creep_compliance_is_physics_md_s():
+    t = np.array([0.0, 0.5, 10.0, 123.0])
+    np.testing.assert_allclose(laws.creep_compliance(t, K_M, ETA_M, K_K, ETA_K), J(t), rtol=1e-15)
+    # J(0) = 1/K_m; J(t_r) = 1/K_m + t_r/eta_m + (1 - 1/e)/K_k; long times: slope 1/eta_m
+    assert J(0.0) == 1 / K_M == 5e-7
+    np.testing.assert_allclose(J(10.0), 5e-7 + 5e-7 + (1 - math.exp(-1)) * 5e-7, rtol=1e-15)
+    np.testing.assert_allclose((J(1001.0) - J(1000.0)), 1 / ETA_M, rtol=1e-12)
 
 
 def pair(r_i, r_j, *, mode="paper", h=2e-3, gravity=(0, 0, 0), fix_i=True, lock_j_rotation=True,
-         yield_stress=SIGMA_Y):
+         yield_stress=SIGMA_Y, friction_after_break=0.7):
     """Two touching spheres along x, bonded; i fixed, j free (rotation locked if asked)."""
     x = np.array([[0.0, 0, 0], [r_i + r_j, 0, 0]])
     sim = Simulation([r_i, r_j], x, fixed=[fix_i, False],
                      settings=SolverSettings(time_step=h, tolerance=1e-12, max_sweeps=200,
                                              gravity=gravity),
-                     bond_law=BondLaw(mode=mode, yield_stress=yield_stress),
+                     bond_law=BondLaw(mode=mode, yield_stress=yield_stress,
+                                      friction_after_break=friction_after_break),
                      domain=((-0.02,) * 3, (0.04, 0.02, 0.02)))
     assert sim.create_bonds(gap_tolerance=1e-6) == 1
     if lock_j_rotation:
@@ -137,11 +150,15 @@ def test_bond_breaks_in_tension_at_yield_force_then_separates():
     assert sim.velocities()[1, 0] > 0
 
 
-def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol):
+@pytest.mark.parametrize("mu", [0.7, 0.3])
+def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol, mu):
+    """A bond breaks in shear at the yield force; its pair then slides on the Coulomb cone of
+    the bond law's friction_after_break (0.3: below the particles' 0.7; before session 31 the
+    setting was read and never used)."""
     r_small = 0.001
     h = 2e-4
-    mu = 0.7
-    sim = pair(0.004, r_small, h=h)
+    sim = pair(0.004, r_small, h=h, friction_after_break=mu)
+    assert sim.friction == 0.7
     m = 2600 * 4 / 3 * math.pi * r_small**3
     f_yield = SIGMA_Y * math.pi * r_small**2
     fn = 0.9 * f_yield                                      # presses j on i (compression)
@@ -342,3 +359,27 @@ def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule
     fx = sim.state_dict()["bonds/impulse"][:, 0] / h
     np.testing.assert_allclose(np.sort(fx), [-0.5 * F, 0.5 * F], rtol=2e-2)
     sim.close()
+
+
+@pytest.mark.parametrize("skin", [0.0, 2.0])
+def test_bonds_are_made_for_every_pair_within_the_gap_tolerance_after_steps(skin):
+    """Bonding reused the neighbour list of the last step, built for the contacts' alert
+    distance (0.1 mm here): with no skin it missed the pairs between 0.1 and 0.3 mm apart.
+    A row of 1 mm spheres at gaps of 0.01 to 0.39 mm; checked against every pair."""
+    gaps = np.linspace(0.01e-3, 0.39e-3, 20)
+    r = np.full(21, 1e-3)
+    x = np.zeros((21, 3))
+    x[1:, 0] = np.cumsum(2e-3 + gaps)
+    x[:, 2] = 0.01
+    sim = Simulation(r, x, settings=SolverSettings(neighbour_skin=skin, gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.01, -0.01, 0.0), (0.06, 0.01, 0.02)))
+    sim.step()
+    tol = 0.3e-3
+    p = sim.positions()
+    d = np.linalg.norm(p[:, None] - p[None], axis=2) - 2e-3
+    i, j = np.nonzero(np.triu(d < tol, 1))
+    assert len(i) == np.count_nonzero(gaps < tol) == 15
+    assert sim.create_bonds(tol) == len(i)
+    state = sim.state_dict()
+    assert set(zip(state["bonds/i"].tolist(), state["bonds/j"].tolist())) == set(
+        zip(i.tolist(), j.tolist()))

@@ -564,3 +564,46 @@ def test_api_refuses_impossible_inputs_with_a_named_reason():
     with pytest.raises(ValueError, match="radii differ"):
         sim.load_state_dict(state)
     sim.close()
+
+
+@pytest.mark.parametrize("edges", ["rim", "extended"])
+def test_a_cylinder_ends_at_its_rim(edges, tol):
+    """Beyond a cylinder's end a sphere touches only its rim (the circle of the inner radius at
+    that end), along the line from its centre to the rim's nearest point; "extended" (the
+    geometry of the shipped study) prolongs the shell by r with the radial gap and normal.
+    R = 20 mm, r = 4 mm, the shell from z = 10 mm: sphere 0 is 2 mm below the end and 3 mm in
+    from the shell (3.606 mm from the rim), sphere 1 3.5 mm below and 3.5 mm in (4.95 mm from
+    the rim: no contact at the rim; 0.5 mm into the extension), sphere 2 along the shell."""
+    R, r, lo = 0.02, 0.004, 0.01
+    x = np.array([[R - 0.003, 0, lo - 0.002], [-(R - 0.0035), 0, lo - 0.0035],
+                  [0, R - 0.0041, lo + 0.005]])
+    wl = [walls.cylinder((0, 0, 0), (0, 0, 1), R, (lo, 0.05), edges=edges)]
+    sim = Simulation(np.full(3, r), x, walls=wl, settings=tight(gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.03, -0.03, -0.01), (0.03, 0.03, 0.06)))
+    sim.step()
+    c = sim.contact_arrays()
+    by = {int(i): (g, n) for i, g, n in zip(c["i"], c["gap"], c["normal"])}
+    assert set(map(int, c["j"])) == {3}                    # wall contacts only
+    h = math.hypot(0.003, 0.002)
+    if edges == "rim":
+        assert set(by) == {0, 2}
+        np.testing.assert_allclose(by[0][0], h - r, rtol=tol, atol=tol * 1e-3)
+        np.testing.assert_allclose(by[0][1], [0.003 / h, 0, 0.002 / h], rtol=tol, atol=tol * 1e-3)
+    else:
+        assert set(by) == {0, 1, 2}
+        np.testing.assert_allclose(by[0][0], -0.001, rtol=tol, atol=tol * 1e-3)
+        np.testing.assert_allclose(by[0][1], [1, 0, 0], atol=tol * 1e-3)
+        np.testing.assert_allclose(by[1][0], -0.0005, rtol=tol, atol=tol * 1e-3)
+        np.testing.assert_allclose(by[1][1], [-1, 0, 0], atol=tol * 1e-3)
+    np.testing.assert_allclose(by[2][0], 0.0001, rtol=max(tol, 1e-9), atol=tol * 1e-3)
+    np.testing.assert_allclose(by[2][1], [0, 1, 0], atol=tol * 1e-3)
+
+
+def test_a_wall_from_an_older_file_keeps_the_edges_it_ran_with():
+    ring = walls.cylinder((0, 0, 0), (0, 0, 1), 0.075, (0.0, 0.06))
+    assert ring.edges == "rim"
+    old = {k: v for k, v in ring.to_dict().items() if k != "edges"}
+    assert walls.Wall.from_dict(old).edges == "extended"
+    assert walls.Wall.from_dict(ring.to_dict()) == ring
+    with pytest.raises(ValueError, match="unknown edges 'round'"):
+        walls.cylinder((0, 0, 0), (0, 0, 1), 0.075, (0.0, 0.06), edges="round")
