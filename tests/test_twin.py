@@ -110,7 +110,7 @@ def test_twin_upper_half_moves_with_the_ring(twin):
 
 def test_twin_shear_is_quasi_static(twin):
     """The kinetic energy stays below 1 % of the work of the moving walls. (At tolerance 1e-4
-    the unconverged bonds release energy: 1.7 % on this twin, with a peak of 1.85 MPa instead
+    the unconverged bonds released energy: 1.7 % on this twin, with a peak of 1.85 MPa instead
     of 4.0: the ratio flags such runs.)"""
     _, _, shear = twin
     assert shear["wall_work_J"] > 0
@@ -122,7 +122,8 @@ def test_twin_bonds_break_most_near_the_plane(twin):
     height) than far from it (beyond half a ring height). The twin's bonds are brittle (their
     yield displacement scales with the square of the sizes), so its failure is diffuse: after
     the peak nearly all of them break (at 2.5 mm, seeds 1-5: 0.99-1.00 near, 0.88-0.94 far),
-    and only the bonds broken by the peak tell where failure formed (seeds 1-5, session 16:
+    and only the bonds broken by the peak tell where failure formed (seeds 1-5, session 16,
+    with the rings of sessions 1-31:
     0.97 / 0.97 / 0.97 / 0.77 / 0.93 near against 0.79 / 0.82 / 0.76 / 0.44 / 0.64 far)."""
     out, _, shear = twin
     series = io.read_series(out / "sample_1" / "shear_series.h5")
