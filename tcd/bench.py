@@ -117,7 +117,7 @@ def phase_table(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> l
                     "steps": b - a, "mean_sweeps": round(float(sweeps[a:b].mean()), 2),
                     "max_sweeps_hit": int(np.count_nonzero(sweeps[a:b] >= max_sweeps)),
                     "mean_contacts": round(float(per_step["contacts"][a:b].mean()), 1),
-                    "wall_s": round(w, 4), "wall_share": round(w / total, 4) if total > 0 else 0.0})
+                    "wall_s": round(w, 6), "wall_share": round(w / total, 4) if total > 0 else 0.0})
     return out
 
 
