@@ -118,10 +118,8 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
             for key in [k for k in frame if k.startswith("contacts/")]:
                 if key != "contacts/start":
                     frame[key] = frame[key][:m]
-        # contacts may touch the walls the arrays hold, or else those of the meta
-        walls = meta.get("walls") if isinstance(meta, dict) else None
-        io.check_state(frame, path, wall_slots=len(walls) if isinstance(walls, list) and not any(
-            k.startswith("walls/") for k in frame) else None, finite_positions=False)
+        io.check_state(frame, path, wall_slots=io.meta_wall_slots(frame, meta),
+                       finite_positions=False)
         if not np.all(np.isfinite(frame["particles/x"])):
             print(f"tcd: warning: {path}: its state holds positions that are not finite (a run "
                   "that diverged?)", file=sys.stderr)

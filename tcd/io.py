@@ -415,6 +415,15 @@ def check_state(arrays: dict, where: str, *, wall_slots: int | None = None,
                          "(a state of a run that diverged?)")
 
 
+def meta_wall_slots(arrays, meta) -> int | None:
+    """The wall indices a checkpoint's contacts may use, for `check_state`: None (the walls its
+    arrays hold) when it has `walls/` arrays, else the count of the walls of its meta."""
+    walls = meta.get("walls") if isinstance(meta, dict) else None
+    if isinstance(walls, list) and not any(k.startswith("walls/") for k in arrays):
+        return len(walls)
+    return None
+
+
 def _check_arrays(frame: dict, units: dict, where: str, *, wall_slots: int | None = None) -> list:
     if "particles/x" not in frame:
         raise ValueError(f"{where}: key 'particles/x' is required")
@@ -756,11 +765,9 @@ def _info_checkpoint(f: h5py.File) -> list[str]:
     lines = [f"meta keys: {keys}", f"arrays: {len(entries)}"]
     lines += [f"  {name}: {ds.dtype} {ds.shape}" for name, ds in entries]
     datasets = {name: ds for name, ds in entries}
-    walls = meta.get("walls") if isinstance(meta, dict) else None
     try:
         check_state({k: _read(ds) for k, ds in datasets.items() if k in FRAME_SCHEMA},
-                    "arrays", wall_slots=len(walls) if isinstance(walls, list) and not any(
-                        k.startswith("walls/") for k in datasets) else None)
+                    "arrays", wall_slots=meta_wall_slots(datasets, meta))
     except (ValueError, OSError) as exc:
         return lines + [f"sample: not read ({exc})"]
     return lines + _info_sample(datasets)
