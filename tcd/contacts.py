@@ -205,22 +205,20 @@ def wall_geometry(wl: ti.template(), k, x, r):
     return gap, n, valid
 
 
-@ti.func
-def bonded_intact(bd: ti.template(), i, j):
-    found = 0
-    for k in range(bd.start[i], bd.start[i + 1]):
-        if bd.j[k] == j and bd.state[k] == 0:
-            found = 1
-    return found
+# a pair's bond state as bond_state reads it: solver.INTACT is 0 and its broken states are
+# positive (tests/test_bonds.py checks that the two modules agree)
+NO_BOND, BOND_INTACT = -1, 0
 
 
 @ti.func
-def bonded_broken(bd: ti.template(), i, j):
-    found = 0
+def bond_state(bd: ti.template(), i, j):
+    """The state of the bond of pair (i, j), i < j, as stored with i: BOND_INTACT, a broken
+    state (> 0), or NO_BOND when the pair was never bonded."""
+    state = NO_BOND
     for k in range(bd.start[i], bd.start[i + 1]):
-        if bd.j[k] == j and bd.state[k] != 0:
-            found = 1
-    return found
+        if bd.j[k] == j:
+            state = bd.state[k]
+    return state
 
 
 @ti.func
@@ -320,7 +318,7 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
         for s in range(nb.start[i], nb.start[i + 1]):
             j = nb.j[s]
             if pair_gap(p, i, j) < alert + reach_i + reach(p, j, h):
-                if bonded_intact(bd, i, j) == 0:
+                if bond_state(bd, i, j) != BOND_INTACT:
                     if ti.static(fill):
                         ct.j[base + m] = j
                     m += 1
@@ -375,7 +373,7 @@ def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct:
             vj, wj = p.v_old[j], p.w_old[j]
             im_j, ii_j = p.inv_mass[j], p.inv_inertia[j]
             if mu_break != mu:
-                if bonded_broken(bd, i, j) == 1:
+                if bond_state(bd, i, j) > BOND_INTACT:
                     f = mu_break
         else:
             kw = j - p.count[None]

@@ -132,6 +132,17 @@ def ramp_until_break(sim, direction, rate, h, steps):
     raise AssertionError("bond never broke")
 
 
+def test_the_contact_passes_read_bond_states_as_the_solver_writes_them():
+    """contacts.bond_state tells intact (no contact built) from broken (friction_after_break) by
+    the solver's codes: intact is BOND_INTACT, every broken state above it, NO_BOND none."""
+    from tcd import contacts, io, solver
+    assert contacts.BOND_INTACT == solver.INTACT == io.BOND_INTACT
+    assert min(solver.BROKEN_TENSION, solver.BROKEN_SHEAR) > contacts.BOND_INTACT
+    assert contacts.NO_BOND not in (solver.INTACT, solver.BROKEN_TENSION, solver.BROKEN_SHEAR)
+    assert (io.BOND_BROKEN_TENSION, io.BOND_BROKEN_SHEAR) == (solver.BROKEN_TENSION,
+                                                              solver.BROKEN_SHEAR)
+
+
 def test_bond_breaks_in_tension_at_yield_force_then_separates():
     r_small = 0.001
     h = 2e-4
