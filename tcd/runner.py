@@ -673,33 +673,22 @@ def read_prepared(path) -> tuple[dict, dict]:
     if len(arrays["bonds/state"]):
         raise ValueError(f"{p}: the sample has {len(arrays['bonds/state'])} bonds: it was "
                          "sheared already; a shear stage starts from an unbonded prepared sample")
-    n = np.asarray(arrays["particles/radius"]).shape[0] if np.ndim(arrays["particles/radius"]) else 0
+    # the schema's checks (shapes, dtypes, indices, radii, positions), as for every state read;
+    # contacts may touch any wall slot: the shear replaces the sample's walls with its own
+    io.check_state(arrays, str(p), wall_slots=MAX_WALLS)
+    n = len(arrays["particles/x"])
     if n == 0:
-        raise ValueError(f"{p}: particles/radius holds no particles")
-    m = np.asarray(arrays["contacts/i"]).reshape(-1).shape[0]
-    shapes = {"particles/x": (n, 3), "particles/v": (n, 3), "particles/w": (n, 3),
-              "particles/radius": (n,), "particles/layer": (n,), "particles/inv_mass": (n,),
-              "particles/inv_inertia": (n,), "particles/f_ext": (n, 3),
-              "contacts/i": (m,), "contacts/j": (m,), "contacts/impulse": (m, 3),
-              "contacts/gap": (m,)}
-    for key, shape in shapes.items():
+        raise ValueError(f"{p}: particles/x holds no particles")
+    for key, shape in (("particles/inv_mass", (n,)), ("particles/inv_inertia", (n,)),
+                       ("particles/f_ext", (n, 3))):          # a simulation's, not the schema's
         a = np.asarray(arrays[key])
-        if a.shape != shape:
-            raise ValueError(f"{p}: {key} has shape {a.shape}, expected {shape} "
-                             f"({n} particles, {m} contacts)")
-        kinds = "iu" if key in ("particles/layer", "contacts/i", "contacts/j") else "f"
-        if a.dtype.kind not in kinds:
-            raise ValueError(f"{p}: {key} has dtype {a.dtype}, expected "
-                             + ("integers" if kinds == "iu" else "floating-point numbers"))
-        if kinds == "f" and not np.all(np.isfinite(a)):
-            raise ValueError(f"{p}: {key} holds non-finite values")
-    r = np.asarray(arrays["particles/radius"])
-    if not np.all(r > 0):
-        raise ValueError(f"{p}: particles/radius holds {int(np.sum(~(r > 0)))} radii <= 0")
-    i, j = np.asarray(arrays["contacts/i"]), np.asarray(arrays["contacts/j"])
-    if m and (i.min() < 0 or i.max() >= n or j.min() < 0 or j.max() >= n + MAX_WALLS):
-        raise ValueError(f"{p}: contacts/i or contacts/j index outside the {n} particles "
-                         f"(and {MAX_WALLS} wall slots)")
+        if a.shape != shape or a.dtype.kind != "f":
+            raise ValueError(f"{p}: key {key!r} has shape {a.shape} and dtype {a.dtype}, "
+                             f"expected {shape} floating-point numbers ({n} particles)")
+    for key in STATE_KEYS:
+        a = np.asarray(arrays[key])
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{p}: key {key!r} holds non-finite values")
     try:
         walls = meta["walls"]
         if not isinstance(walls, list):

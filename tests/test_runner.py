@@ -549,11 +549,15 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         "no_radius": ({k: v for k, v in arrays.items() if k != "particles/radius"},
                       "not a prepared sample: it lacks particles/radius"),
         "short_x": ({**arrays, "particles/x": arrays["particles/x"][:-1]},
-                    r"particles/x has shape \(\d+, 3\), expected"),
+                    r"key 'particles/\w+' has length \d+ but 'particles/\w+' has \d+"),
         "negative_radius": ({**arrays, "particles/radius": -arrays["particles/radius"]},
-                            r"particles/radius holds \d+ radii <= 0"),
+                            r"'particles/radius' holds \d+ radii that are not positive and finite"),
+        "nan_velocity": ({**arrays, "particles/v": arrays["particles/v"] * np.nan},
+                         "key 'particles/v' holds non-finite values"),
+        "short_f_ext": ({**arrays, "particles/f_ext": arrays["particles/f_ext"][:-1]},
+                        r"key 'particles/f_ext' has shape \(\d+, 3\)"),
         "bad_contact": ({**arrays, "contacts/i": arrays["contacts/i"] + len(arrays["particles/x"])},
-                        "contacts/i or contacts/j index outside"),
+                        r"key 'contacts/i' has indices in \[\d+, \d+\], expected \[0, \d+\)"),
     }
     for name, (bad, message) in cases.items():
         path = tmp_path / "s_4.h5"
