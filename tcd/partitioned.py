@@ -337,8 +337,8 @@ def close_sweep(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
         residual = 0.0
         if ti.static(quad == 1):
             residual = sk.quad_check_range(p, wl, ct, bd, 0, bd.total[None], 0, ct.total[None])
-        elif rsum > 0.0:
-            residual = dsum / rsum
+        else:
+            residual = sk.impulse_residual(dsum, rsum)
         pt.residual[None] = residual
         if residual <= tol or sweeps >= max_sweeps:
             done = 1

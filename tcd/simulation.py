@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from . import backend, contacts as ck, partitioned as pk, solver as sk, state as state_mod
-from .state import (MAX_PARTS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
+from .state import (MAX_PARTS, MAX_SWEEPS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
                     Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
@@ -178,7 +178,7 @@ class SolverSettings:
             raise ValueError(f"theta must be in [0.5, 1], got {self.theta}")
         _finite("tolerance", self.tolerance, positive=True)
         # integers handed to the kernels as 32-bit arguments
-        _integer("max_sweeps", self.max_sweeps, 1, INT32_MAX)
+        _integer("max_sweeps", self.max_sweeps, 1, MAX_SWEEPS)
         _integer("check_every", self.check_every, 1, INT32_MAX)
         _integer("threads", self.threads, 1, MAX_PARTS)
         _integer("projection_passes", self.projection_passes, 0, INT32_MAX)

@@ -20,6 +20,9 @@ from . import backend
 MAX_WALLS = 64
 MAX_SYSTEMS = 64            # independent systems (samples) batched in one simulation
 MAX_PARTS = 64              # threads of the partitioned Gauss-Seidel (tcd/partitioned.py)
+# sweeps per step: the partitioned Gauss-Seidel claims about 2 MAX_PARTS units per sweep from an
+# i32 counter (1.3e9 at this bound); config.py's max_sweeps bounds are the same number
+MAX_SWEEPS = 10**7
 SLAB_BINS = 4096            # its work histogram across the sample, cut into slabs
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS

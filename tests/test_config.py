@@ -539,3 +539,14 @@ def test_a_byte_order_mark_is_not_an_error(tmp_path):
     path = tmp_path / "bom.toml"
     path.write_bytes("\ufeff".encode() + MINIMAL.encode())
     assert load_scenario(path).name == "tiny"
+
+
+def test_the_scenario_bound_on_max_sweeps_is_the_engine_s():
+    """A scenario's max_sweeps (solver and stage) is bounded as SolverSettings bounds it, so a
+    scenario the check accepts never fails when its simulation is built."""
+    from tcd import config
+    from tcd.state import MAX_SWEEPS
+    for model in (config.SolverConfig, config.ShearStage):
+        field = model.model_fields["max_sweeps"]
+        assert [m.le for m in field.metadata if hasattr(m, "le")] == [MAX_SWEEPS], model
+
