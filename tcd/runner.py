@@ -96,7 +96,10 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
 
     jobs > 1 runs that many samples at once, each in its own process (the CPU solver uses one
     core per sample, so a 2-core machine prepares and shears two samples in the time of one).
-    Each sample's numbers depend only on its seed: they are the same for any `jobs`."""
+    Each sample's numbers depend on its seed and on how the CPU runs the kernels' loops
+    (backend.loop_mode, recorded as `cpu_loops` in its summary): a worker with one core runs
+    them inline, a single run on several cores in the pool, and the two differ in the last
+    bits, which a bond cascade can amplify. Same loop mode, same numbers, for any `jobs`."""
     out = pathlib.Path(out_dir)
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
@@ -134,7 +137,8 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
         workers = min(jobs, len(pending))
         # each worker's share of the cores (its solver's threads for the partitioned schedule):
-        # one thread runs its kernels' loops inline (backend.serial_loops), the same numbers
+        # one thread runs its kernels' loops inline (backend.serial_loops): the numbers of a
+        # single run on one core (TCD_CPU_THREADS=1), not of one in the pool (loop_mode)
         if scenario.solver.schedule == "partitioned":
             worker_threads = scenario.solver.threads
         else:
@@ -276,6 +280,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         series = [{} for _ in seeds]
         results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
                    for seed in seeds]
+    for res in results:                 # each invocation's loop mode, as in _run_sample
+        res["cpu_loops"] = list(res.get("cpu_loops", [])) + [backend.loop_mode()]
     views = [SystemView(batch, k) for k in range(len(seeds))]
     if not resume:
         for seed, view, res in zip(seeds, views, results):
@@ -472,6 +478,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
     elif states.exists():
         for stale in (states, ck_path):
             stale.unlink(missing_ok=True)
+    # each invocation's loop mode (backend.loop_mode: the numbers' last bits depend on it)
+    result["cpu_loops"] = list(result.get("cpu_loops", [])) + [backend.loop_mode()]
     last_ck = time.perf_counter()
 
     def checkpoint():
