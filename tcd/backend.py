@@ -13,10 +13,11 @@ import taichi as ti
 ARCHS = ("cpu", "gpu")
 PRECISIONS = ("f64", "f32")
 
-_state = {"arch": None, "precision": None, "serial_loops": False}
+_state = {"arch": None, "precision": None, "serial_loops": False, "fast_math": True}
 
 THREADS_ENV = "TCD_CPU_THREADS"   # the CPU thread pool's size when `init` is not given one
 LOOPS_ENV = "TCD_PARALLEL_LOOPS"  # 0: the kernels' loops run inline (see serial_loops)
+FAST_MATH_ENV = "TCD_FAST_MATH"   # 0: Taichi's fast math off (see init, loop_mode)
 
 
 class BackendUnavailable(RuntimeError):
@@ -27,14 +28,17 @@ OFFLINE_CACHE_BYTES = 1 << 30     # Taichi's compiled-kernel cache limit (see in
 
 
 def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
-         cpu_threads: int | None = None, parallel_loops: bool | None = None) -> None:
+         cpu_threads: int | None = None, parallel_loops: bool | None = None,
+         fast_math: bool | None = None) -> None:
     """Initialise Taichi for `arch` ("cpu" or "gpu") and `precision` ("f64" or "f32").
     `cpu_threads`: size of Taichi's CPU thread pool (default: the environment variable
     TCD_CPU_THREADS, else one per core). With one thread every kernel's parallel loops run
-    inline on the launching thread (`serial_loops`). No result depends on it: the kernels'
-    parallel loops give the same numbers in any order (tests/test_threads.py), the serial
-    schedule uses one thread, the partitioned one gives the same numbers on any number of
-    threads.
+    inline on the launching thread (`serial_loops`). The kernels' parallel loops give the
+    same numbers in any order and on any number of threads, but inline loops may differ from
+    pooled ones in the last bits under fast math (`loop_mode`).
+    `fast_math`: Taichi's fast math (default: the environment variable TCD_FAST_MATH, 0 or 1,
+    else on, as every shipped result was computed). Off, the compiler keeps IEEE semantics and
+    inline and pooled loops give the same numbers.
     `parallel_loops` (CPU only): whether the kernels' parallel loops go to the thread pool
     (default: the environment variable TCD_PARALLEL_LOOPS, 0 or 1, else yes unless the pool
     has one thread). When not, they run inline on the launching thread (`serial_loops`), all
@@ -75,6 +79,13 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         parallel_loops = value == "1"
     if parallel_loops is None:
         parallel_loops = cpu_threads != 1
+    if fast_math is None:
+        value = os.environ.get(FAST_MATH_ENV, "").strip() or "1"
+        if value not in ("0", "1"):
+            raise ValueError(f"{FAST_MATH_ENV} must be 0 or 1, got {value!r}")
+        fast_math = value == "1"
+    if not isinstance(fast_math, bool):
+        raise ValueError(f"fast_math must be True or False, got {fast_math!r}")
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": cpu_threads}
@@ -89,9 +100,10 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     if os.environ.get("TCD_KERNEL_PROFILER", "") not in ("", "0"):
         extra["kernel_profiler"] = True     # benchmarks/profile.py: time per kernel
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
-            offline_cache=True, log_level=ti.WARN, **extra)
+            offline_cache=True, log_level=ti.WARN, fast_math=fast_math, **extra)
     memoise_frontend()
     _state["arch"], _state["precision"] = arch, precision
+    _state["fast_math"] = fast_math
     _state["serial_loops"] = arch == "cpu" and not parallel_loops
 
 
@@ -103,10 +115,14 @@ def loop_mode() -> str:
     steps, and after a bond cascade visibly (seed 1 with rim rings: peak 0.8952 MPa at 2.50 mm
     inline, 0.8954 at 2.22 mm in the pool). A run's summary records it (`cpu_loops`); the same
     scenario, seed, backend and loop mode give the same numbers. `tcd run --jobs N` runs its
-    workers inline when each has one core; TCD_PARALLEL_LOOPS=0 (or 1) chooses."""
+    workers inline when each has one core; TCD_PARALLEL_LOOPS=0 (or 1) chooses. With fast math
+    off (TCD_FAST_MATH=0) the two modes agree (seed 1's first 12 shear steps, bit for bit), and
+    the mode reads "inline (fast math off)" or "pool (fast math off)"."""
     if _state["arch"] != "cpu":
-        return str(_state["arch"])
-    return "inline" if _state["serial_loops"] else "pool"
+        mode = str(_state["arch"])
+    else:
+        mode = "inline" if _state["serial_loops"] else "pool"
+    return mode if _state.get("fast_math", True) else mode + " (fast math off)"
 
 
 def serial_loops() -> bool:

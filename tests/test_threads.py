@@ -80,3 +80,18 @@ def test_thread_and_loop_settings_are_read_and_checked():
         assert out.returncode != 0 and message in out.stderr, (env, out.stderr[-500:])
     out = run_init({}, "tcd.init('cpu', 'f64', cpu_threads=-3)")
     assert out.returncode != 0 and "cpu_threads must be a positive integer" in out.stderr
+
+
+def test_fast_math_setting_is_read_checked_and_recorded():
+    """TCD_FAST_MATH=0 turns Taichi's fast math off (inline and pooled loops then agree in
+    every bit), and the loop mode a run records says so."""
+    call = "tcd.init('cpu', 'f64', cpu_threads=1); print(backend.loop_mode())"
+    assert run_init({}, call).stdout.strip().splitlines()[-2] == "inline"
+    assert run_init({"TCD_FAST_MATH": "0"}, call).stdout.strip().splitlines()[-2] == \
+        "inline (fast math off)"
+    pool = "tcd.init('cpu', 'f64', cpu_threads=2, fast_math=False); print(backend.loop_mode())"
+    assert run_init({}, pool).stdout.strip().splitlines()[-2] == "pool (fast math off)"
+    out = run_init({"TCD_FAST_MATH": "no"})
+    assert out.returncode != 0 and "TCD_FAST_MATH must be 0 or 1" in out.stderr
+    out = run_init({}, "tcd.init('cpu', 'f64', fast_math=1)")
+    assert out.returncode != 0 and "fast_math must be True or False" in out.stderr
