@@ -5,11 +5,11 @@ from the `tol` fixture, which follows the precision.
 
 Every test process (each pytest-xdist worker holds one core) and every process a test starts
 runs Taichi's CPU kernels on one thread with their loops inline (TCD_CPU_THREADS=1, see
-tcd.backend.serial_loops), unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS is set. The tests'
-cases give the same numbers either way (tests/test_threads.py runs the thread pool's side in
-a child process), but that is not true of every problem: with Taichi's fast math a loop body
-may compile differently inline (backend.loop_mode). A loop handed to the pool costs about
-160 us on this project's machine against 20 us inline.
+tcd.backend.serial_loops), unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS is set. With Taichi's
+fast math (the default) a loop body may compile differently inline, and the numbers may differ
+in their last bits (backend.loop_mode); with it off they agree (tests/test_threads.py, two
+child processes). A loop handed to the pool costs about 160 us on this project's machine
+against 20 us inline.
 """
 import os
 
