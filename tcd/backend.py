@@ -113,7 +113,7 @@ def loop_mode() -> str:
     body differently (a serialised loop may be vectorised across its iterations), and the
     numbers differ in their last bits: the shear of a study sample by 2e-13 relative after two
     steps, and after a bond cascade visibly (seed 1 with rim rings: peak 0.8952 MPa at 2.50 mm
-    inline, 0.8954 at 2.22 mm in the pool). A run's summary records it (`cpu_loops`); the same
+    inline, 0.8933 at 2.21 mm in the pool). A run's summary records it (`cpu_loops`); the same
     scenario, seed, backend and loop mode give the same numbers. `tcd run --jobs N` runs its
     workers inline when each has one core; TCD_PARALLEL_LOOPS=0 (or 1) chooses. With fast math
     off (TCD_FAST_MATH=0) the two modes agree (seed 1's first 12 shear steps, bit for bit), and

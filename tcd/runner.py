@@ -280,8 +280,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         series = [{} for _ in seeds]
         results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
                    for seed in seeds]
-    for res in results:                 # each invocation's loop mode, as in _run_sample
-        res["cpu_loops"] = list(res.get("cpu_loops", [])) + [backend.loop_mode()]
+    for res in results:
+        _record_loop_mode(res)
     views = [SystemView(batch, k) for k in range(len(seeds))]
     if not resume:
         for seed, view, res in zip(seeds, views, results):
@@ -449,6 +449,12 @@ def _checkpoint_if_due(interrupt, last_ck: float, every_s: float, save, bar) -> 
     return last_ck
 
 
+def _record_loop_mode(result: dict) -> None:
+    """Append this invocation's loop mode to a sample's `cpu_loops` (backend.loop_mode: the
+    numbers' last bits depend on it; a resumed run adds one entry per invocation)."""
+    result["cpu_loops"] = list(result.get("cpu_loops", [])) + [backend.loop_mode()]
+
+
 def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
     with DeferredInterrupt() as interrupt:
         return _run_sample(scn, seed, sample_dir, resume=resume, progress=progress,
@@ -478,8 +484,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
     elif states.exists():
         for stale in (states, ck_path):
             stale.unlink(missing_ok=True)
-    # each invocation's loop mode (backend.loop_mode: the numbers' last bits depend on it)
-    result["cpu_loops"] = list(result.get("cpu_loops", [])) + [backend.loop_mode()]
+    _record_loop_mode(result)
     last_ck = time.perf_counter()
 
     def checkpoint():

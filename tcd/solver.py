@@ -30,7 +30,6 @@ from . import backend, contacts, laws
 from .state import COLOUR_WORDS, MAX_COLOURS, RESIDUAL_CHUNK, WALL_CHUNK
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
-
 SYSTEM_SPREAD = 1024         # loop iterations per batched system (see nlgs_serial)
 MODE_PAPER, MODE_BURGERS = 0, 1
 
