@@ -1,6 +1,6 @@
 #!/bin/bash
 # GPU checks and figures, run on a lent GPU machine (the device tool) from the repository root:
-#   bash benchmarks/gpu_check.sh next   (s17, s17b: session 17's two calls; tests, bench, quick,
+#   bash benchmarks/gpu_check.sh next   (s33: session 33's call; s17, s17b: session 17's two calls; tests, bench, quick,
 #   diag, check, final, full: session 15's)
 # with DEADLINE=S (seconds) to end the later stages in time
 # Logs go to $OUT (default /tmp/tcd_gpu). Where the machine has no taichi, wheels carried in
@@ -30,6 +30,20 @@ stage() {   # stage NAME LIMIT_S command...: output in $O/NAME.txt, its tail and
 }
 S='samples/leutner_seed{seed}_prepared.h5'
 case "${1:-quick}" in
+s33)        # session 33, one call (DEADLINE=575): the shear with session 17's changes (check every
+            # 4 sweeps, the colour base kept on the device, extrapolated warm start), the GPU
+            # physics tests as a whole (session 17's 13 failures: timeouts or not), five samples
+            # batched, then the 1e6 row with a short pouring
+    stage shear_ce1 55 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json
+    stage shear_ce4 40 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4
+    stage shear_field_ce4 50 env TCD_SOLVE_BASE=field python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4
+    stage shear_ext_ce4 40 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
+    TAIL=60 stage pytest_gpu 220 python3 -m pytest -p no:cacheprovider --arch gpu -n 16 --dist load \
+        --timeout 170 -v -rfE --tb=line --durations 15 tests/test_engine.py tests/test_bonds.py tests/test_batch.py
+    stage shear_batch5_ce4 75 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.002 --arch gpu --json --check-every 4
+    stage scaling_1e6 100 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.05 \
+        --arch gpu --out "$O/scaling_gpu" --json --check-every 4
+    ;;
 next)       # next session, one call (DEADLINE=570): session 17's changes measured
             # (largest-first colouring, --check-every, TCD_COLOURS_PER_LAUNCH, TCD_SOLVE_BASE),
             # the 13 tests that failed on the H200 in session 17 (their reasons were cut with
