@@ -19,11 +19,11 @@ def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatc
     monkeypatch.setattr(bench, "pour_setup", setup)
     out = tmp_path / "scan" / "scaling"
     with pytest.raises(KeyboardInterrupt):
-        bench.scaling(sizes=(300, 600), steps=3, out=str(out), progress=seen.append)
+        bench.scaling(sizes=(300, 600), steps=4, out=str(out), progress=seen.append)
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     assert [int(r["particles"]) for r in rows] == [300] and [r["particles"] for r in seen] == [300]
     row = rows[0]
-    assert float(row["seconds_per_particle_step"]) > 0 and int(row["timed_steps"]) == 2
+    assert float(row["seconds_per_particle_step"]) > 0 and int(row["timed_steps"]) == 4 - bench.WARMUP_STEPS == 2
     assert float(row["final_residual"]) <= 1e-4 or int(row["max_sweeps_hit"]) > 0
     assert float(row["memory_bytes_per_particle"]) > 0
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -33,7 +33,7 @@ def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatc
 
 @pytest.mark.parametrize("options, message", [
     ({"sizes": (100,)}, "at least 300 spheres"),
-    ({"steps": 1}, "steps 1: at least 2"),                   # divided by steps - 1 at the end
+    ({"steps": 2}, "steps 2: at least 3"),       # divided by the timed steps (steps - 2) at the end
     ({"out": "/proc/no/such/scaling"}, "cannot write into /proc/no/such"),
     ({"settle": -0.1}, "settle -0.1: expected a finite time >= 0"),
     ({"settle": float("nan")}, "settle nan"),
@@ -46,11 +46,13 @@ def test_scaling_checks_its_arguments_before_the_first_size(tmp_path, monkeypatc
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_benchmark_shorter_than_two_steps_is_refused():
-    """The first step compiles and is not timed: --time below two steps used to run two steps
-    silently."""
-    with pytest.raises(ValueError, match="less than two time steps"):
-        bench.pour(particles=10, time=1e-5)
+def test_a_benchmark_without_a_timed_step_is_refused():
+    """The first two steps compile and are not timed: --time below three steps would time
+    nothing (below two it used to run two steps silently)."""
+    assert bench.WARMUP_STEPS == 2
+    for time in (1e-5, 2 * 2e-4):
+        with pytest.raises(ValueError, match="less than 3 time steps"):
+            bench.pour(particles=10, time=time)
 
 
 def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark():
@@ -66,16 +68,16 @@ def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path):
     trace = tmp_path / "pour.csv"
     out = bench.pour(particles=60, time=0.02, trace=str(trace))
     ph = out["phases"]
-    assert len(ph) == 10 and sum(p["steps"] for p in ph) == out["steps"] - 1 == 99
+    assert len(ph) == 10 and sum(p["steps"] for p in ph) == out["steps"] - 2 == 98
     assert sum(p["wall_s"] for p in ph) == pytest.approx(out["loop_wall_s"], rel=0.05)
     assert sum(p["wall_share"] for p in ph) == pytest.approx(1.0, abs=1e-3)
     rows = list(csv.DictReader(open(trace)))
-    assert out["trace"] == str(trace) and len(rows) == 99
+    assert out["trace"] == str(trace) and len(rows) == 98
     sweeps = [int(r["sweeps"]) for r in rows]
     assert sum(sweeps) / len(sweeps) == pytest.approx(out["mean_sweeps"])
     assert sum(p["mean_sweeps"] * p["steps"] for p in ph) == pytest.approx(sum(sweeps), rel=1e-3)
     times = [float(r["time_s"]) for r in rows]
-    assert times[0] == pytest.approx(2 * 2e-4) and times[-1] == pytest.approx(0.02)
+    assert times[0] == pytest.approx(3 * 2e-4) and times[-1] == pytest.approx(0.02)
     assert ph[0]["time_s"][0] == pytest.approx(times[0]) and ph[-1]["time_s"][1] == pytest.approx(times[-1])
     assert int(rows[-1]["contacts"]) == out["contacts"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pour.csv"]     # no .part left
