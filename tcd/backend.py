@@ -37,8 +37,10 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     same numbers in any order and on any number of threads, but inline loops may differ from
     pooled ones in the last bits under fast math (`loop_mode`).
     `fast_math`: Taichi's fast math (default: the environment variable TCD_FAST_MATH, 0 or 1,
-    else on, as every shipped result was computed). Off, the compiler keeps IEEE semantics and
-    inline and pooled loops give the same numbers.
+    else off on the CPU and on on a GPU). Off, the compiler keeps IEEE semantics and inline
+    and pooled loops give the same numbers, so a run's numbers do not depend on `--jobs` or the
+    thread settings (on by default until session 33; no speed cost measured on the CPU). On a
+    GPU it stays on: there is no loop mode to agree with, and its cost there is unmeasured.
     `parallel_loops` (CPU only): whether the kernels' parallel loops go to the thread pool
     (default: the environment variable TCD_PARALLEL_LOOPS, 0 or 1, else yes unless the pool
     has one thread). When not, they run inline on the launching thread (`serial_loops`), all
@@ -80,7 +82,7 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     if parallel_loops is None:
         parallel_loops = cpu_threads != 1
     if fast_math is None:
-        value = os.environ.get(FAST_MATH_ENV, "").strip() or "1"
+        value = os.environ.get(FAST_MATH_ENV, "").strip() or ("0" if arch == "cpu" else "1")
         if value not in ("0", "1"):
             raise ValueError(f"{FAST_MATH_ENV} must be 0 or 1, got {value!r}")
         fast_math = value == "1"
@@ -116,8 +118,9 @@ def loop_mode() -> str:
     inline, 0.8933 at 2.21 mm in the pool). A run's summary records it (`cpu_loops`); the same
     scenario, seed, backend and loop mode give the same numbers. `tcd run --jobs N` runs its
     workers inline when each has one core; TCD_PARALLEL_LOOPS=0 (or 1) chooses. With fast math
-    off (TCD_FAST_MATH=0) the two modes agree (seed 1's first 12 shear steps, bit for bit), and
-    the mode reads "inline (fast math off)" or "pool (fast math off)"."""
+    off (the CPU's default since session 33; TCD_FAST_MATH=1 turns it on) the two modes agree
+    (seed 1's first 12 shear steps, bit for bit), and the mode reads "inline (fast math off)" or
+    "pool (fast math off)"."""
     if _state["arch"] != "cpu":
         mode = str(_state["arch"])
     else:

@@ -67,11 +67,11 @@ def schedule_settings(name: str) -> dict:
 
 
 def env_without_thread_settings(**extra) -> dict:
-    """This process's environment for a child, less TCD_CPU_THREADS and TCD_PARALLEL_LOOPS
-    (pytest_configure sets the first), plus `extra`."""
+    """This process's environment for a child, less TCD_CPU_THREADS, TCD_PARALLEL_LOOPS
+    (pytest_configure sets the first) and TCD_FAST_MATH, plus `extra`."""
     from tcd import backend as tcd_backend
     env = {k: v for k, v in os.environ.items()
-           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV)}
+           if k not in (tcd_backend.THREADS_ENV, tcd_backend.LOOPS_ENV, tcd_backend.FAST_MATH_ENV)}
     env.update(extra)
     return env
 

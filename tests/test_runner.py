@@ -183,8 +183,8 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     assert sa["tau_peak_MPa"] == sb["tau_peak_MPa"] and sa["d_peak_mm"] == sb["d_peak_mm"]
     # each invocation's loop mode (the numbers' last bits follow it): here inline, twice
     from tcd import backend
-    assert sa["cpu_loops"] == [backend.loop_mode()] == ["inline"]
-    assert sb["cpu_loops"] == ["inline", "inline"]
+    assert sa["cpu_loops"] == [backend.loop_mode()] == ["inline (fast math off)"]
+    assert sb["cpu_loops"] == ["inline (fast math off)"] * 2
 
 
 def test_resume_without_checkpoint_is_refused(tmp_path):
