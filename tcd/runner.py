@@ -96,10 +96,11 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
 
     jobs > 1 runs that many samples at once, each in its own process (the CPU solver uses one
     core per sample, so a 2-core machine prepares and shears two samples in the time of one).
-    Each sample's numbers depend on its seed and on how the CPU runs the kernels' loops
-    (backend.loop_mode, recorded as `cpu_loops` in its summary): a worker with one core runs
-    them inline, a single run on several cores in the pool, and the two differ in the last
-    bits, which a bond cascade can amplify. Same loop mode, same numbers, for any `jobs`."""
+    Each sample's numbers depend on its seed, not on `jobs`: a worker with one core runs the
+    kernels' loops inline, a single run on several cores in the pool (backend.loop_mode,
+    recorded as `cpu_loops` in its summary), and with Taichi's fast math off (the CPU's
+    default) the two agree bit for bit. With fast math on (TCD_FAST_MATH=1) they differ in the
+    last bits, which a bond cascade can amplify."""
     out = pathlib.Path(out_dir)
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
