@@ -49,8 +49,9 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     The environment variable TCD_KERNEL_PROFILER=1 turns on Taichi's kernel profiler
     (benchmarks/profile.py prints its table).
 
-    A second call with the same settings is a no-op; a call with different settings raises,
-    because Taichi cannot be re-initialised safely once fields exist.
+    A second call with the same arch and precision is a no-op (its thread and fast-math
+    settings are ignored); one with another arch or precision raises, because Taichi cannot be
+    re-initialised safely once fields exist.
     """
     if arch not in ARCHS:
         raise ValueError(f"unknown arch {arch!r}: expected one of {ARCHS}")
@@ -82,10 +83,7 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     if parallel_loops is None:
         parallel_loops = cpu_threads != 1
     if fast_math is None:
-        value = os.environ.get(FAST_MATH_ENV, "").strip() or ("0" if arch == "cpu" else "1")
-        if value not in ("0", "1"):
-            raise ValueError(f"{FAST_MATH_ENV} must be 0 or 1, got {value!r}")
-        fast_math = value == "1"
+        fast_math = fast_math_setting(arch)
     if not isinstance(fast_math, bool):
         raise ValueError(f"fast_math must be True or False, got {fast_math!r}")
     fp = ti.f64 if precision == "f64" else ti.f32
@@ -107,6 +105,19 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     _state["arch"], _state["precision"] = arch, precision
     _state["fast_math"] = fast_math
     _state["serial_loops"] = arch == "cpu" and not parallel_loops
+
+
+def fast_math_setting(arch: str) -> bool:
+    """Whether Taichi's fast math is on: this process's setting once `init` has run, else what
+    `init(arch)` without `fast_math` would choose: the environment variable TCD_FAST_MATH (0 or
+    1), else off on the CPU and on on a GPU. A run records it in run.json, and a resumed run
+    must match it."""
+    if _state["arch"] is not None:
+        return bool(_state["fast_math"])
+    value = os.environ.get(FAST_MATH_ENV, "").strip() or ("0" if arch == "cpu" else "1")
+    if value not in ("0", "1"):
+        raise ValueError(f"{FAST_MATH_ENV} must be 0 or 1, got {value!r}")
+    return value == "1"
 
 
 def loop_mode() -> str:

@@ -138,8 +138,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
         workers = min(jobs, len(pending))
         # each worker's share of the cores (its solver's threads for the partitioned schedule):
-        # one thread runs its kernels' loops inline (backend.serial_loops): the numbers of a
-        # single run on one core (TCD_CPU_THREADS=1), not of one in the pool (loop_mode)
+        # one thread runs its kernels' loops inline (backend.serial_loops): with fast math
+        # off (the CPU's default) the numbers of a run in the pool too; with TCD_FAST_MATH=1
+        # they differ in the last bits (loop_mode)
         if scenario.solver.schedule == "partitioned":
             worker_threads = scenario.solver.threads
         else:
@@ -181,7 +182,8 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     than those the run started with (its samples would mix two configurations); the records
     are left as they are."""
     from .config import ScenarioError, parse_scenario
-    backend_now = {"arch": scenario.backend.arch, "precision": scenario.backend.precision}
+    backend_now = {"arch": scenario.backend.arch, "precision": scenario.backend.precision,
+                   "fast_math": backend.fast_math_setting(scenario.backend.arch)}
     stored = out / "scenario.toml"
     if resume and stored.is_file():
         try:
@@ -197,7 +199,22 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
             except (OSError, ValueError):
                 started = {}
             changed += [f"backend.{k}: {started[k]!r} -> {v!r} (--{k})"
-                        for k, v in backend_now.items() if k in started and started[k] != v]
+                        for k, v in backend_now.items()
+                        if k != "fast_math" and k in started and started[k] != v]
+            # fast math (TCD_FAST_MATH) changes the numbers' last bits; runs started before
+            # session 33 did not record it and had it on, unless TCD_FAST_MATH said otherwise
+            if "fast_math" in started:
+                was = started["fast_math"]
+            elif os.environ.get(backend.FAST_MATH_ENV, "").strip():
+                was = backend_now["fast_math"]      # the user's explicit choice stands
+            else:
+                was = True
+            if was != backend_now["fast_math"]:
+                changed.append(f"backend.fast_math: {was!r} -> {backend_now['fast_math']!r} "
+                               f"(set {backend.FAST_MATH_ENV}={int(was)} to resume as started"
+                               + ("" if "fast_math" in started else
+                                  "; this run predates the record, when fast math was on "
+                                  "unless TCD_FAST_MATH=0 was set") + ")")
         if changed:
             raise ValueError(f"{out}: --resume with a scenario other than the one this run "
                              f"started with ({stored}): {io.shown_differences(changed)}. Resume "
@@ -451,8 +468,9 @@ def _checkpoint_if_due(interrupt, last_ck: float, every_s: float, save, bar) -> 
 
 
 def _record_loop_mode(result: dict) -> None:
-    """Append this invocation's loop mode to a sample's `cpu_loops` (backend.loop_mode: the
-    numbers' last bits depend on it; a resumed run adds one entry per invocation)."""
+    """Append this invocation's loop mode to a sample's `cpu_loops` (backend.loop_mode: with
+    fast math on the numbers' last bits depend on it; a resumed run adds one entry per
+    invocation)."""
     result["cpu_loops"] = list(result.get("cpu_loops", [])) + [backend.loop_mode()]
 
 

@@ -6,9 +6,9 @@ from the `tol` fixture, which follows the precision.
 Every test process (each pytest-xdist worker holds one core) and every process a test starts
 runs Taichi's CPU kernels on one thread with their loops inline (TCD_CPU_THREADS=1, see
 tcd.backend.serial_loops), unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS is set. With Taichi's
-fast math (the default) a loop body may compile differently inline, and the numbers may differ
-in their last bits (backend.loop_mode); with it off they agree (tests/test_threads.py, two
-child processes). A loop handed to the pool costs about 160 us on this project's machine
+fast math on (TCD_FAST_MATH=1; off by default on the CPU since session 33) a loop body may
+compile differently inline, and the numbers may differ in their last bits (backend.loop_mode);
+with it off, the default, they agree (tests/test_threads.py, two child processes). A loop handed to the pool costs about 160 us on this project's machine
 against 20 us inline.
 """
 import os
@@ -100,6 +100,7 @@ def other_side(tmp_path, backend):
     root = pathlib.Path(__file__).resolve().parents[1]
     inline_here = tcd_backend.serial_loops()
     init = "cpu_threads=2, parallel_loops=True" if inline_here else "cpu_threads=1"
+    init += f", fast_math={tcd_backend.fast_math_setting(arch)}"     # this process's setting
 
     def run(code: str):
         script = tmp_path / "other_side.py"

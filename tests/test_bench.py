@@ -50,9 +50,11 @@ def test_a_benchmark_without_a_timed_step_is_refused():
     """The first two steps compile and are not timed: --time below three steps would time
     nothing (below two it used to run two steps silently)."""
     assert bench.WARMUP_STEPS == 2
-    for time in (1e-5, 2 * 2e-4):
+    for time in (1e-5, 2 * 2e-4, float("nan")):
         with pytest.raises(ValueError, match="less than 3 time steps"):
             bench.pour(particles=10, time=time)
+    for time in (0.0006, 3 * 2e-4, 2.6 * 2e-4):     # three steps, whatever the rounding
+        bench._check_steps(time)
 
 
 def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark():

@@ -1,7 +1,7 @@
 """The kernels' loops give the same numbers handed to Taichi's thread pool or run inline
-(tcd.backend.serial_loops) when Taichi's fast math is off: each side is a child process, and
-every number must match bit for bit. With fast math on (the default) the two may differ in the
-last bits, by host: a serialised loop may be vectorised across its iterations (session 32: this
+(tcd.backend.serial_loops) when Taichi's fast math is off (the CPU's default since session
+33): each side is a child process, and every number must match bit for bit. With fast math on
+(TCD_FAST_MATH=1, the default until session 33) the two may differ in the last bits, by host: a serialised loop may be vectorised across its iterations (session 32: this
 test's bonded case passed on session 31's host and fails on session 32's, at the same commit).
 
 Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
@@ -114,7 +114,13 @@ def test_fast_math_setting_is_read_checked_and_recorded():
         "inline (fast math off)"
     assert run_init({"TCD_FAST_MATH": "1"}, call).stdout.strip().splitlines()[-2] == "inline"
     pool = "tcd.init('cpu', 'f64', cpu_threads=2, fast_math=False); print(backend.loop_mode())"
-    assert run_init({}, pool).stdout.strip().splitlines()[-2] == "pool (fast math off)"
+    # the keyword wins over the environment
+    assert run_init({"TCD_FAST_MATH": "1"}, pool).stdout.strip().splitlines()[-2] == \
+        "pool (fast math off)"
+    # before init: what init would choose; on a GPU fast math stays on
+    choice = "print(backend.fast_math_setting('gpu'), backend.fast_math_setting('cpu'))"
+    assert run_init({}, choice).stdout.strip().splitlines()[-2] == "True False"
+    assert run_init({"TCD_FAST_MATH": "0"}, choice).stdout.strip().splitlines()[-2] == "False False"
     on = "tcd.init('cpu', 'f64', cpu_threads=2, fast_math=True); print(backend.loop_mode())"
     assert run_init({}, on).stdout.strip().splitlines()[-2] == "pool"
     out = run_init({"TCD_FAST_MATH": "no"})
