@@ -320,6 +320,41 @@ def test_bonding_refits_the_contact_buffer_without_changing_the_motion(small_cla
 
 
 @pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
+def test_an_oversized_colour_set_is_shrunk_without_changing_the_motion(small_classes):
+    """The coloured schedule's colour set is sized for this step's items; one twice their class
+    or more (sized before a loaded state's contact buffer was refitted: 32768 slots for about
+    9300 items on the seed-1 shear) is exchanged for one of their class, bit for bit the same
+    motion (session 33)."""
+    from tcd import state
+
+    def pile():
+        r = 0.004
+        g = np.arange(4) * 2 * r
+        x = np.array([[a, b, r + c] for a in g for b in g for c in g[:3]])
+        sim = Simulation(np.full(len(x), r), x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                         settings=SolverSettings(time_step=2e-4, tolerance=1e-5, max_sweeps=200,
+                                                 **schedule_settings("coloured")),
+                         domain=((-0.01,) * 3, (0.04, 0.04, 0.04)))
+        sim.step(2)
+        assert sim.create_bonds(1e-6) > 50
+        sim.step(2)
+        return sim
+    a, b = pile(), pile()
+    need = a.contacts.capacity + a.particles.capacity
+    assert a.colours.capacity < 2 * capacity_class(need)
+    state.release(b.colours)
+    b.colours = state.acquire(state.ColourSet, 8 * need, b.particles.capacity)
+    a.step(3)
+    b.step(3)
+    need = b.contacts.capacity + b.particles.capacity
+    assert b.colours.capacity == capacity_class(need)           # was 8 times that, or more
+    assert np.array_equal(a.positions(), b.positions())
+    assert np.array_equal(a.velocities(), b.velocities())
+    a.close()
+    b.close()
+
+
+@pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_original(small_classes):
     """A bonded state loaded into a new simulation (a resumed run, a batch) starts with a
     buffer sized for an unbonded sample; it is refitted after the next step, as after
