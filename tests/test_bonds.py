@@ -282,13 +282,15 @@ def test_state_with_bonds_round_trips_bit_exactly_and_continues_identically(tmp_
         assert np.array_equal(a.state_dict()[k], b.state_dict()[k]), k
 
 
-def _bonded_pile(refit: bool):
-    """A 4 x 4 x 3 lattice of touching spheres on a floor, bonded, stepped under gravity."""
+def _bonded_pile(refit: bool, **settings):
+    """A 4 x 4 x 3 lattice of touching spheres on a floor, bonded, stepped under gravity
+    (`settings`: more SolverSettings keywords)."""
     r = 0.004
     g = np.arange(4) * 2 * r
     x = np.array([[a, b, r + c] for a in g for b in g for c in g[:3]])
     sim = Simulation(np.full(len(x), r), x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
-                     settings=SolverSettings(time_step=2e-4, tolerance=1e-5, max_sweeps=200),
+                     settings=SolverSettings(time_step=2e-4, tolerance=1e-5, max_sweeps=200,
+                                             **settings),
                      domain=((-0.01,) * 3, (0.04, 0.04, 0.04)))
     sim.step(3)
     before = sim.contacts.capacity
@@ -326,20 +328,7 @@ def test_an_oversized_colour_set_is_shrunk_without_changing_the_motion(small_cla
     9300 items on the seed-1 shear) is exchanged for one of their class, bit for bit the same
     motion (session 33)."""
     from tcd import state
-
-    def pile():
-        r = 0.004
-        g = np.arange(4) * 2 * r
-        x = np.array([[a, b, r + c] for a in g for b in g for c in g[:3]])
-        sim = Simulation(np.full(len(x), r), x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
-                         settings=SolverSettings(time_step=2e-4, tolerance=1e-5, max_sweeps=200,
-                                                 **schedule_settings("coloured")),
-                         domain=((-0.01,) * 3, (0.04, 0.04, 0.04)))
-        sim.step(2)
-        assert sim.create_bonds(1e-6) > 50
-        sim.step(2)
-        return sim
-    a, b = pile(), pile()
+    (a, _, _), (b, _, _) = (_bonded_pile(True, **schedule_settings("coloured")) for _ in "ab")
     need = a.contacts.capacity + a.particles.capacity
     assert a.colours.capacity < 2 * capacity_class(need)
     state.release(b.colours)
