@@ -8,8 +8,12 @@ runs Taichi's CPU kernels on one thread with their loops inline (TCD_CPU_THREADS
 tcd.backend.serial_loops), unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS is set. With Taichi's
 fast math on (TCD_FAST_MATH=1; off by default on the CPU since session 33) a loop body may
 compile differently inline, and the numbers may differ in their last bits (backend.loop_mode);
-with it off, the default, they agree (tests/test_threads.py, two child processes). A loop handed to the pool costs about 160 us on this project's machine
-against 20 us inline.
+with it off, the default, they agree (tests/test_threads.py, two child processes). A loop handed
+to the pool costs about 160 us on this project's machine against 20 us inline.
+
+On the CPU the coloured schedule runs one colour per solve call in the tests
+(TCD_COLOURS_PER_LAUNCH=1, unless set): the same numbers as the default, a fraction of its
+compile time (see pytest_configure).
 """
 import os
 
@@ -139,6 +143,13 @@ _FIRST = ("test_precision_f32.py", "test_twin.py")
 def pytest_configure(config):
     if not (os.environ.get("TCD_CPU_THREADS") or os.environ.get("TCD_PARALLEL_LOOPS")):
         os.environ["TCD_CPU_THREADS"] = "1"
+    if config.getoption("--arch") == "cpu" and not os.environ.get("TCD_COLOURS_PER_LAUNCH"):
+        # the coloured schedule's solve kernel with one colour per call, not the default 4
+        # unrolled: the same numbers (test_engine.py, test_colours_per_launch_changes_no_number,
+        # runs the default too), and 0.9 s to compile on the CPU instead of 7.6 s, for each of
+        # its instances (one per set of fields: 7 in test_bonds' oversized-colour-set test,
+        # 92 s -> 42 s with an empty kernel cache)
+        os.environ["TCD_COLOURS_PER_LAUNCH"] = "1"
     config.addinivalue_line(
         "markers", "f64_only: the test compares two runs of the same code (a buffer refit, a "
         "launch split, a neighbour skin) bit for bit, which does not depend on the precision: "
