@@ -11,15 +11,19 @@ compile differently inline, and the numbers may differ in their last bits (backe
 with it off, the default, they agree (tests/test_threads.py, two child processes). A loop handed
 to the pool costs about 160 us on this project's machine against 20 us inline.
 
-On the CPU the coloured schedule runs one colour per solve call in the tests
-(TCD_COLOURS_PER_LAUNCH=1, unless set): the same numbers as the default, a fraction of its
-compile time (see pytest_configure).
+Compile time: with an empty kernel cache, compiling was half of the suite's time. On the CPU
+the tests run the coloured schedule one colour per solve call (TCD_COLOURS_PER_LAUNCH=1) and
+Taichi without its own IR optimisations (TI_ADVANCED_OPTIMIZATION=0), unless those are set:
+the same numbers as the defaults, a fraction of the compile time (see pytest_configure).
 """
 import os
 
 import pytest
 
 import tcd
+
+# read by ti.init (Taichi takes any of its settings from TI_<NAME>)
+ADVANCED_OPTIMIZATION_ENV = "TI_ADVANCED_OPTIMIZATION"
 
 
 def pytest_addoption(parser):
@@ -150,6 +154,12 @@ def pytest_configure(config):
         # its instances (one per set of fields: 7 in test_bonds' oversized-colour-set test,
         # 92 s -> 42 s with an empty kernel cache)
         os.environ["TCD_COLOURS_PER_LAUNCH"] = "1"
+    if config.getoption("--arch") == "cpu" and not os.environ.get(ADVANCED_OPTIMIZATION_ENV):
+        # Taichi's own IR optimisations off (LLVM's stay): the same numbers bit for bit
+        # (test_threads.py runs a child with them on), 3.5 times less compile time for the
+        # largest kernels (nlgs_serial 2.2 s -> 0.6 s, solve_colours 0.9 s -> 0.4 s), and
+        # with an empty kernel cache compiling was half of the suite's time
+        os.environ[ADVANCED_OPTIMIZATION_ENV] = "0"
     config.addinivalue_line(
         "markers", "f64_only: the test compares two runs of the same code (a buffer refit, a "
         "launch split, a neighbour skin) bit for bit, which does not depend on the precision: "

@@ -1,8 +1,11 @@
 """The kernels' loops give the same numbers handed to Taichi's thread pool or run inline
 (tcd.backend.serial_loops) when Taichi's fast math is off (the CPU's default since session
-33): each side is a child process, and every number must match bit for bit. With fast math on
-(TCD_FAST_MATH=1, the default until session 33) the two may differ in the last bits, by host: a serialised loop may be vectorised across its iterations (session 32: this
-test's bonded case passed on session 31's host and fails on session 32's, at the same commit).
+33), and with Taichi's own IR optimisations on or off (TI_ADVANCED_OPTIMIZATION, off in the
+tests for compile time): each side is a child process, and every number must match bit for
+bit. With fast math on (TCD_FAST_MATH=1, the default until session 33) the two may differ in
+the last bits, by host: a serialised loop may be vectorised across its iterations (session 32:
+this test's bonded case passed on session 31's host and fails on session 32's, at the same
+commit).
 
 Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
 are checked before Taichi starts."""
@@ -13,7 +16,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import env_without_thread_settings
+from conftest import ADVANCED_OPTIMIZATION_ENV, env_without_thread_settings
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -45,8 +48,9 @@ def run_case():
     return out
 
 
-def side(backend, init: str) -> dict:
-    """run_case in a child process initialised with `init` (keywords of tcd.init)."""
+def side(backend, init: str, env: dict | None = None) -> dict:
+    """run_case in a child process initialised with `init` (keywords of tcd.init), with the
+    environment variables `env` set."""
     import json
     import textwrap
     arch, precision = backend
@@ -60,7 +64,7 @@ def side(backend, init: str) -> dict:
         print(json.dumps(run_case()))
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=900, env=env_without_thread_settings(PYTHONPATH=str(ROOT)))
+                         timeout=900, env=env_without_thread_settings(PYTHONPATH=str(ROOT), **(env or {})))
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -72,8 +76,10 @@ def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend):
     cascade made that a 4 % change in one sample's peak (README, "Loop mode")."""
     if backend[0] != "cpu":
         pytest.skip("inline loops are a CPU setting")
+    # the pool's side also with Taichi's IR optimisations on, as a run outside the tests has
+    # them (conftest.py turns them off for compile time): the same numbers either way
     inline = side(backend, "cpu_threads=1")
-    pool = side(backend, "cpu_threads=2, parallel_loops=True")
+    pool = side(backend, "cpu_threads=2, parallel_loops=True", {ADVANCED_OPTIMIZATION_ENV: "1"})
     assert max(inline["serial"]["sweeps"]) > 20          # impacts: many sweeps per step
     assert set(pool) == set(inline)
     for case in inline:
