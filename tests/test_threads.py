@@ -9,6 +9,7 @@ commit).
 
 Also the settings of the thread pool and of the loops (TCD_CPU_THREADS, TCD_PARALLEL_LOOPS)
 are checked before Taichi starts."""
+import os
 import pathlib
 import subprocess
 import sys
@@ -60,11 +61,15 @@ def side(backend, init: str, env: dict | None = None) -> dict:
         sys.path.insert(0, {str(ROOT / "tests")!r})
         import tcd
         tcd.init({arch!r}, {precision!r}, {init})
+        import taichi as ti
         from test_threads import run_case
-        print(json.dumps(run_case()))
+        out = run_case()
+        out["config"] = {{"advanced_optimization": [ti.lang.impl.current_cfg().advanced_optimization]}}
+        print(json.dumps(out))
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=900, env=env_without_thread_settings(PYTHONPATH=str(ROOT), **(env or {})))
+                         timeout=900,
+                         env=env_without_thread_settings(PYTHONPATH=str(ROOT), **(env or {})))
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -81,6 +86,9 @@ def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend):
     inline = side(backend, "cpu_threads=1")
     pool = side(backend, "cpu_threads=2, parallel_loops=True", {ADVANCED_OPTIMIZATION_ENV: "1"})
     assert max(inline["serial"]["sweeps"]) > 20          # impacts: many sweeps per step
+    assert pool.pop("config") == {"advanced_optimization": [True]}
+    assert inline.pop("config") == {"advanced_optimization": [
+        os.environ.get(ADVANCED_OPTIMIZATION_ENV) != "0"]}
     assert set(pool) == set(inline)
     for case in inline:
         for key in inline[case]:
