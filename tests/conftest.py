@@ -147,14 +147,15 @@ _FIRST = ("test_precision_f32.py", "test_twin.py")
 def pytest_configure(config):
     if not (os.environ.get("TCD_CPU_THREADS") or os.environ.get("TCD_PARALLEL_LOOPS")):
         os.environ["TCD_CPU_THREADS"] = "1"
-    if config.getoption("--arch") == "cpu" and not os.environ.get("TCD_COLOURS_PER_LAUNCH"):
+    cpu = config.getoption("--arch") == "cpu"
+    if cpu and not os.environ.get("TCD_COLOURS_PER_LAUNCH"):
         # the coloured schedule's solve kernel with one colour per call, not the default 4
         # unrolled: the same numbers (test_engine.py, test_colours_per_launch_changes_no_number,
         # runs the default too), and 0.9 s to compile on the CPU instead of 7.6 s, for each of
         # its instances (one per set of fields: 7 in test_bonds' oversized-colour-set test,
         # 92 s -> 42 s with an empty kernel cache)
         os.environ["TCD_COLOURS_PER_LAUNCH"] = "1"
-    if config.getoption("--arch") == "cpu" and not os.environ.get(ADVANCED_OPTIMIZATION_ENV):
+    if cpu and not os.environ.get(ADVANCED_OPTIMIZATION_ENV):
         # Taichi's own IR optimisations off (LLVM's stay): the same numbers bit for bit
         # (test_threads.py runs a child with them on), 3.5 times less compile time for the
         # largest kernels (nlgs_serial 2.2 s -> 0.6 s, solve_colours 0.9 s -> 0.4 s), and
