@@ -65,6 +65,7 @@ def side(backend, init: str, env: dict | None = None) -> dict:
         from test_threads import run_case
         out = run_case()
         out["advanced_optimization"] = ti.lang.impl.current_cfg().advanced_optimization
+        out["open_skip"] = tcd.solver.OPEN_SKIP
         print(json.dumps(out))
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -74,25 +75,54 @@ def side(backend, init: str, env: dict | None = None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend):
+@pytest.fixture(scope="module")
+def inline_side(backend):
+    """run_case in a child with its loops inline (the CPU only), shared by the tests below."""
+    if backend[0] != "cpu":
+        pytest.skip("inline loops are a CPU setting")
+    return side(backend, "cpu_threads=1")
+
+
+def assert_same_numbers(a: dict, b: dict) -> None:
+    assert set(a) == set(b)
+    for case in a:
+        for key in a[case]:
+            assert np.array_equal(np.array(a[case][key]), np.array(b[case][key])), (case, key)
+
+
+def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend, inline_side):
     """With the CPU's default (fast math off since session 33) a run's numbers do not depend on
     whether its loops run inline (`tcd run --jobs N`, one core per worker) or in the pool (a
     single run on several cores). With fast math on they differed in their last bits, and a bond
     cascade made that a 4 % change in one sample's peak (README, "Loop mode")."""
-    if backend[0] != "cpu":
-        pytest.skip("inline loops are a CPU setting")
     # the pool's side also with Taichi's IR optimisations on, as a run outside the tests has
     # them (conftest.py turns them off for compile time): the same numbers either way
-    inline = side(backend, "cpu_threads=1")
+    inline = dict(inline_side)
     pool = side(backend, "cpu_threads=2, parallel_loops=True", {ADVANCED_OPTIMIZATION_ENV: "1"})
     assert max(inline["serial"]["sweeps"]) > 20          # impacts: many sweeps per step
     assert pool.pop("advanced_optimization") is True
     assert inline.pop("advanced_optimization") is (os.environ.get(ADVANCED_OPTIMIZATION_ENV) != "0")
-    assert set(pool) == set(inline)
-    for case in inline:
-        for key in inline[case]:
-            assert np.array_equal(np.array(pool[case][key]), np.array(inline[case][key])), \
-                (case, key)
+    assert pool.pop("open_skip") == inline.pop("open_skip")
+    assert_same_numbers(pool, inline)
+
+
+def test_open_contact_early_return_changes_no_number(backend, inline_side):
+    """A visit to a contact with no impulse that its law keeps open returns early (solver.
+    OPEN_SKIP); without the early return (TCD_OPEN_SKIP=0) the serial, coloured and bonded
+    cases of run_case give the same numbers bit for bit (a zero impulse may differ in its
+    sign only, which array_equal does not see)."""
+    full = side(backend, "cpu_threads=1", {"TCD_OPEN_SKIP": "0"})
+    skip = dict(inline_side)
+    for out in (full, skip):
+        out.pop("advanced_optimization")
+    assert full.pop("open_skip") is False
+    if not skip.pop("open_skip"):
+        pytest.skip("TCD_OPEN_SKIP=0 is set for the whole run")
+    for case in ("serial", "coloured"):
+        impulse = np.array(skip[case]["impulse"])
+        # the early return is taken: open contacts with no impulse at the end of the run
+        assert 0 < np.count_nonzero(np.all(impulse == 0.0, axis=1)) < len(impulse)
+    assert_same_numbers(full, skip)
 
 
 def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
