@@ -116,7 +116,8 @@ def contact_law(u, r_old, n, wnn, wtt, rhs, mu):
 
 @ti.func
 def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n_part):
-    """Local solve of contact k; returns (dR, R) (zero vectors if both bodies are kinematic).
+    """Local solve of contact k; returns (dR, R) (zero vectors if both bodies are kinematic,
+    or if the contact has no impulse and stays open: OPEN_SKIP).
 
     For spheres the relative velocity at the contact is u = v_j - v_i - (r_i w_i + r_j w_j) x n
     and an impulse dR on j (-dR on i) changes w_i and w_j by -(I^-1 r) (n x dR): one cross
