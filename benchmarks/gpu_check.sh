@@ -56,6 +56,9 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # README's 5.0e-6 and 3.9e-6 were taken); then five samples batched (the study's
             # 5 min needs them in the same launches) and the 1e6 pour into a settling bed.
             # test_neighbour_skin_changes_no_number (past 300 s on the H200) is left out.
+            # Since session 35 an open contact with no impulse returns from its visit early
+            # (solver.OPEN_SKIP; same numbers): TCD_OPEN_SKIP=0 in front of a stage gives the
+            # figure without it, for comparison with session 33's.
     stage shear_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
     stage shear_fwd_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.1 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --sweep-order forward
     stage shear_batch5_ext_ce4 200 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
