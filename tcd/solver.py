@@ -40,7 +40,14 @@ MODE_PAPER, MODE_BURGERS = 0, 1
 # four zero updates of its bodies (bit for bit the same numbers, up to the sign of a zero
 # impulse; measured: a quarter of the pour's sweep cost, session 35). The environment
 # variable TCD_OPEN_SKIP=0 turns the early return off (read at import), for comparisons.
-OPEN_SKIP = os.environ.get("TCD_OPEN_SKIP", "1").strip() != "0"
+def _open_skip_setting() -> bool:
+    text = os.environ.get("TCD_OPEN_SKIP", "").strip()
+    if text not in ("", "0", "1"):
+        raise ValueError(f"TCD_OPEN_SKIP must be 0 or 1, not {text!r}")
+    return text != "0"
+
+
+OPEN_SKIP = _open_skip_setting()
 
 
 @ti.func

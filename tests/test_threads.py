@@ -125,6 +125,14 @@ def test_open_contact_early_return_changes_no_number(backend, inline_side):
     assert_same_numbers(full, skip)
 
 
+def test_open_skip_setting_is_checked():
+    call = "from tcd import solver; print(solver.OPEN_SKIP)"
+    assert run_init({}, call).stdout.strip().splitlines()[-2] == "True"
+    assert run_init({"TCD_OPEN_SKIP": "0"}, call).stdout.strip().splitlines()[-2] == "False"
+    out = run_init({"TCD_OPEN_SKIP": "yes"}, call)
+    assert out.returncode != 0 and "TCD_OPEN_SKIP must be 0 or 1, not 'yes'" in out.stderr
+
+
 def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
     env = env_without_thread_settings(**env_extra, PYTHONPATH=str(ROOT))
     code = f"import tcd\nfrom tcd import backend\n{call}\nprint(backend.serial_loops())"
