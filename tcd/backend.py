@@ -75,13 +75,8 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         if cpu_threads < 1 or (isinstance(raw, float) and raw != cpu_threads):
             raise ValueError(f"{source} must be a positive integer (threads of Taichi's CPU "
                              f"pool), got {raw!r}")
-    if parallel_loops is None and os.environ.get(LOOPS_ENV, "").strip():
-        value = os.environ[LOOPS_ENV].strip()
-        if value not in ("0", "1"):
-            raise ValueError(f"{LOOPS_ENV} must be 0 or 1, got {value!r}")
-        parallel_loops = value == "1"
     if parallel_loops is None:
-        parallel_loops = cpu_threads != 1
+        parallel_loops = env_flag(LOOPS_ENV, cpu_threads != 1)
     if fast_math is None:
         fast_math = fast_math_setting(arch)
     if not isinstance(fast_math, bool):
@@ -114,9 +109,17 @@ def fast_math_setting(arch: str) -> bool:
     must match it."""
     if _state["arch"] is not None:
         return bool(_state["fast_math"])
-    value = os.environ.get(FAST_MATH_ENV, "").strip() or ("0" if arch == "cpu" else "1")
+    return env_flag(FAST_MATH_ENV, arch != "cpu")
+
+
+def env_flag(name: str, default: bool) -> bool:
+    """The environment variable `name` as a switch: 0 or 1, `default` when unset or blank;
+    any other value is an error that names it."""
+    value = os.environ.get(name, "").strip()
+    if not value:
+        return default
     if value not in ("0", "1"):
-        raise ValueError(f"{FAST_MATH_ENV} must be 0 or 1, got {value!r}")
+        raise ValueError(f"{name} must be 0 or 1, got {value!r}")
     return value == "1"
 
 

@@ -24,8 +24,6 @@ Everything here is deterministic: no float atomics, reductions in a fixed order.
 contact updates are plain load/store (no atomics): no two threads ever touch one body.
 """
 
-import os
-
 import taichi as ti
 
 from . import backend, contacts, laws
@@ -40,14 +38,7 @@ MODE_PAPER, MODE_BURGERS = 0, 1
 # four zero updates of its bodies (bit for bit the same numbers, up to the sign of a zero
 # impulse; measured: a quarter of the pour's sweep cost, session 35). The environment
 # variable TCD_OPEN_SKIP=0 turns the early return off (read at import), for comparisons.
-def _open_skip_setting() -> bool:
-    text = os.environ.get("TCD_OPEN_SKIP", "").strip()
-    if text not in ("", "0", "1"):
-        raise ValueError(f"TCD_OPEN_SKIP must be 0 or 1, not {text!r}")
-    return text != "0"
-
-
-OPEN_SKIP = _open_skip_setting()
+OPEN_SKIP = backend.env_flag("TCD_OPEN_SKIP", True)
 
 
 @ti.func

@@ -130,7 +130,7 @@ def test_open_skip_setting_is_checked():
     assert run_init({}, call).stdout.strip().splitlines()[-2] == "True"
     assert run_init({"TCD_OPEN_SKIP": "0"}, call).stdout.strip().splitlines()[-2] == "False"
     out = run_init({"TCD_OPEN_SKIP": "yes"}, call)
-    assert out.returncode != 0 and "TCD_OPEN_SKIP must be 0 or 1, not 'yes'" in out.stderr
+    assert out.returncode != 0 and "TCD_OPEN_SKIP must be 0 or 1, got 'yes'" in out.stderr
 
 
 def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
