@@ -59,6 +59,16 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # Since session 35 an open contact with no impulse returns from its visit early
             # (solver.OPEN_SKIP; same numbers): TCD_OPEN_SKIP=0 in front of a stage gives the
             # figure without it, for comparison with session 33's.
+            # Session 36 added the resident schedule (all sweeps of a step in one launch, one
+            # thread block of 256 per system, a block barrier after each colour; written and
+            # checked on the CPU only, where a block is one thread): its tests on the GPU
+            # first (same numbers as the coloured schedule; a stage timeout means a barrier
+            # deadlock), then its shear, one sample and five batched, against the coloured
+            # schedule's in the same call.
+    TAIL=20 stage pytest_resident 150 python3 -m pytest -p no:cacheprovider --arch gpu -v -rfE \
+        --tb=short tests/test_resident.py
+    stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+    stage shear_batch5_resident 120 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     stage shear_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
     stage shear_fwd_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.1 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --sweep-order forward
     stage shear_batch5_ext_ce4 200 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5

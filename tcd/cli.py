@@ -583,9 +583,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _schedule_options(parser) -> None:
-    parser.add_argument("--schedule", choices=("auto", "serial", "partitioned", "coloured"),
+    parser.add_argument("--schedule", choices=("auto", "serial", "partitioned", "coloured",
+                                               "resident"),
                         default="auto", help="Gauss-Seidel schedule (default: serial on the "
-                        "CPU, coloured on the GPU)")
+                        "CPU, coloured on the GPU; resident: the coloured one with all sweeps "
+                        "of a step in one launch)")
     parser.add_argument("--threads", type=_positive_int, default=2, metavar="P",
                         help="threads of the partitioned schedule (its numbers depend on P)")
     parser.add_argument("--sweep-order", choices=("forward", "symmetric"), default="symmetric",

@@ -106,7 +106,9 @@ class SolverConfig(_Model):
     QuadDV, QuadDVR and |MeanDVoR| must all be below the tolerance; LMGC90's default is
     1.666e-4); max_sweeps per step; check_every: sweeps between convergence checks; schedule: "auto" (serial on CPU, coloured on GPU), "serial",
     "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
-    `threads`) or "coloured"; acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
+    `threads`), "coloured" or "resident" (the coloured schedule's colours, all sweeps of a step
+    in one launch: one GPU thread block per system; each system to its own convergence);
+    acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
     "none"; sweep_order: "symmetric" (forward and backward sweeps alternate, the default) or
     "forward" (fewer sweeps on a shear; larger overlaps under a vibrating plate);
     warm_start_extrapolation: c in [0, 1], each bond and lasting contact starts the step from
@@ -127,7 +129,7 @@ class SolverConfig(_Model):
     max_sweeps: int = Field(1000, ge=1, le=10**7)
     check_every: int = Field(1, ge=1, le=10**7)
     convergence: Literal["impulse", "quad"] = "impulse"
-    schedule: Literal["auto", "serial", "partitioned", "coloured"] = "auto"
+    schedule: Literal["auto", "serial", "partitioned", "coloured", "resident"] = "auto"
     threads: int = Field(2, ge=1, le=64)
     acceleration: Literal["nncg", "none"] = "nncg"
     sweep_order: Literal["forward", "symmetric"] = "symmetric"

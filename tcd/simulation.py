@@ -24,7 +24,8 @@ from .state import (MAX_PARTS, MAX_SWEEPS, MAX_SYSTEMS, MAX_WALLS, Bonds, Colour
                     Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
 from .walls import KINDS, Wall
 
-SCHEDULES = ("auto", "serial", "partitioned", "coloured")
+SCHEDULES = ("auto", "serial", "partitioned", "coloured", "resident")
+COLOURED = ("coloured", "resident")     # the schedules that colour their items
 ACCELERATIONS = ("nncg", "none")
 SWEEP_ORDERS = ("forward", "symmetric")
 CONVERGENCE_MEASURES = ("impulse", "quad")
@@ -128,8 +129,10 @@ class SolverSettings:
     the impulses; the largest of its QuadDV, QuadDVR and |MeanDVoR|: tcd/solver.py);
     max_sweeps; check_every (sweeps between convergence checks);
     schedule: "serial", "partitioned" (the serial sweep split over `threads` CPU threads:
-    tcd/partitioned.py; its numbers depend on `threads`), "coloured" or "auto" (serial on CPU,
-    coloured on GPU); threads: parts of the partitioned schedule; acceleration:
+    tcd/partitioned.py; its numbers depend on `threads`), "coloured", "resident" (the coloured
+    schedule's colours with all sweeps of a step in one launch, one GPU thread block per
+    system: solver.solve_resident; each system to its own convergence; no "quad" check) or
+    "auto" (serial on CPU, coloured on GPU); threads: parts of the partitioned schedule; acceleration:
     "nncg" (nonsmooth nonlinear conjugate gradient on top of the serial Gauss-Seidel sweeps) or
     "none" (plain Gauss-Seidel; the coloured schedule is always plain); sweep_order:
     "symmetric" (forward and backward sweeps alternate: the default, and the order of every
@@ -332,6 +335,10 @@ class Simulation:
         if self.schedule == "partitioned" and backend.arch() != "cpu":
             raise ValueError("the partitioned schedule runs CPU threads that wait for each other; "
                              "on the GPU use schedule = \"coloured\" (or \"auto\")")
+        if self.schedule == "resident" and settings.convergence == "quad":
+            raise ValueError("the resident schedule measures convergence as the coloured one "
+                             "does without its 'Quad ' check: use convergence = \"impulse\", or "
+                             "schedule = \"coloured\" for convergence = \"quad\"")
         if self.schedule == "partitioned" and self.systems > 1:
             raise ValueError("the partitioned schedule splits ONE system over threads; a batch of "
                              f"{self.systems} systems already runs one thread per system on the "
@@ -525,7 +532,7 @@ class Simulation:
         p, wl, bd = self.particles, self.wall_fields, self.bonds
         self._begin_step()
         ct = self.contacts
-        if self.schedule == "coloured":
+        if self.schedule in COLOURED:
             ncol, items = self._colour()
             self._by_colours(ncol, sk.warm_start_colours, p, ct, bd, self.colours)
         else:
@@ -538,6 +545,11 @@ class Simulation:
         elif self.schedule == "partitioned":
             self._solve_partitioned()
             colours = 0
+        elif self.schedule == "resident":
+            sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
+                              s.tolerance, s.check_every, self._blocks(), sk.resident_threads(),
+                              int(self.systems > 1))
+            colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)
         if bd.total[None] > 0:
@@ -545,7 +557,7 @@ class Simulation:
                             self.bond_law.yield_stress)
         sk.integrate(p, h, theta)
         slop = s.overlap_slop * 2.0 * self.r_min
-        if s.projection_passes > 0 and self.schedule == "coloured":
+        if s.projection_passes > 0 and self.schedule in COLOURED:
             for _ in range(s.projection_passes):
                 self._by_colours(colours, sk.project_overlaps_colours, p, wl, ct, bd,
                                  self.colours, h, slop)

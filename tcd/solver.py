@@ -9,6 +9,10 @@ through the body velocities. Two schedules run the same local solves:
   coloured so that one colour never shares a dynamic body (walls excepted); the items of one
   colour are solved in parallel, colour after colour, one launch per colour. For many-core
   devices (GPU).
+- "resident": the coloured schedule's colours and local solves, but all sweeps of a step in
+  ONE launch: one GPU thread block per system stays resident for the whole step and meets
+  at a block barrier after each colour (solve_resident). No launch per colour; on the CPU a
+  block is one thread, and the numbers are the coloured schedule's.
 - "partitioned" (tcd/partitioned.py): the serial sweep split over P CPU threads (P slabs of
   particles across the sample, their interior items at once, then the boundary items), all sweeps in
   one launch. Numbers depend on P, never on thread timing.
@@ -998,6 +1002,132 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
             r += cs.partial[c][1]
         cs.residual[None] = impulse_residual(d, r)
     return cs.residual[None]
+
+
+# --- the resident schedule: all sweeps of a step in one launch -------------------------------------
+# A GPU thread block per system runs the whole step: the colours one after the other, each
+# colour's items of its system strided over the block's threads, a block barrier after each
+# colour and around the convergence test. Its threads share one decision to go on or stop,
+# read after a barrier, so every thread meets every barrier. On the CPU a block is one thread
+# (Taichi's CPU loops have no barrier), which is the coloured schedule's sweep done in order.
+RESIDENT_THREADS = 256      # threads per block on a GPU (f64 local solves: registers per thread)
+
+
+def resident_threads() -> int:
+    """Threads per system of solve_resident on the running backend."""
+    return 1 if backend.arch() == "cpu" else RESIDENT_THREADS
+
+
+@ti.func
+def resident_barrier(threads: ti.template()):
+    if ti.static(threads > 1):
+        ti.simt.block.sync()
+
+
+@ti.func
+def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
+                blocks: ti.template()):
+    """The batched system of item q (bond item q < nb, else contact q - nb)."""
+    i = 0
+    if q < nb:
+        if ti.static(blocks == 1):
+            i = q
+        else:
+            i = bd.i[q]
+    else:
+        i = ct.i[q - nb]
+    return p.system[i]
+
+
+@ti.kernel
+def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
+                   cs: ti.template(), st: ti.template(), ncol: ti.i32, max_sweeps: ti.i32,
+                   tol: float, check_every: ti.i32, blocks: ti.template(),
+                   threads: ti.template(), batched: ti.template()):
+    """All sweeps of one step over the colours of `cs` (solve_item, as solve_colours), one
+    block of `threads` threads per system, each system to its own convergence (as
+    nlgs_serial: a system's numbers are those it would have alone). The residual is
+    sweep_residual's, over the system's items (its bond items, then its contacts) in chunks of
+    RESIDUAL_CHUNK, summed in chunk order: for one system the coloured schedule's numbers.
+    Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
+    into st.sweeps / st.residual."""
+    ti.loop_config(block_dim=threads)
+    for t in range(p.systems[None] * threads):
+        sy = t // threads
+        tid = t % threads
+        q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
+        nb = bd.total[None]
+        qb0, qb1 = bd.start[q0], bd.start[q1]
+        if ti.static(blocks == 1):
+            nb = p.count[None]
+            qb0, qb1 = q0, q1
+        c0, c1 = ct.start[q0], ct.start[q1]
+        n1 = qb1 - qb0
+        nitems = n1 + c1 - c0
+        nchunks = (nitems + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK
+        # this system's chunk partials in cs.partial: at most floor(earlier items / chunk)
+        # + (earlier systems) chunks come before them
+        base = (qb0 + c0) // RESIDUAL_CHUNK + sy
+        sweeps = 0
+        residual = 0.0
+        done = 0
+        while done == 0:
+            for c in range(ncol):
+                s = cs.start[c] + tid
+                end = cs.start[c + 1]
+                while s < end:
+                    solve = 1
+                    if ti.static(batched == 1):
+                        if item_system(p, ct, bd, cs.order[s], nb, blocks) != sy:
+                            solve = 0
+                    if solve == 1:
+                        solve_item(p, wl, ct, bd, cs, s, blocks)
+                    s += threads
+                resident_barrier(threads)
+            sweeps += 1
+            if sweeps % check_every == 0 or sweeps >= max_sweeps:
+                ch = tid
+                while ch < nchunks:
+                    d = 0.0
+                    r = 0.0
+                    for v in range(ch * RESIDUAL_CHUNK, ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
+                        q = qb0 + v
+                        if v >= n1:
+                            q = nb + c0 + v - n1
+                        d += cs.change[q][0]
+                        r += cs.change[q][1]
+                    cs.partial[base + ch] = ti.Vector([d, r])
+                    ch += threads
+                resident_barrier(threads)
+                if tid == 0:
+                    d = 0.0
+                    r = 0.0
+                    for k in range(nchunks):
+                        d += cs.partial[base + k][0]
+                        r += cs.partial[base + k][1]
+                    res = impulse_residual(d, r)
+                    stop = 0
+                    if res <= tol or sweeps >= max_sweeps:
+                        stop = 1
+                    cs.sys_residual[sy] = res
+                    cs.sys_stop[sy] = stop
+                resident_barrier(threads)
+                residual = cs.sys_residual[sy]
+                done = cs.sys_stop[sy]
+                # every thread has read the decision before thread 0 may write the next one
+                resident_barrier(threads)
+        if tid == 0:
+            st.sys_sweeps[sy] = sweeps
+            st.sys_residual[sy] = residual
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        sweeps = 0
+        residual = 0.0
+        for sy in range(p.systems[None]):
+            sweeps = ti.max(sweeps, st.sys_sweeps[sy])
+            residual = ti.max(residual, st.sys_residual[sy])
+        st.sweeps[None] = sweeps
+        st.residual[None] = residual
 
 
 @ti.kernel

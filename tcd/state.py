@@ -379,7 +379,12 @@ class ColourSet:
         # solver.solve_colours_next: the colours of this step, and the next call's first one
         self.ncol, self.base = _scalar(), _scalar()
         # the residual's partial sums, one per chunk of RESIDUAL_CHUNK items
-        self.partial = ti.Vector.field(2, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
+        # (solver.solve_resident: per system, after the chunks of the systems before it)
+        self.partial = ti.Vector.field(2, backend.real(),
+                                       shape=capacity // RESIDUAL_CHUNK + MAX_SYSTEMS + 2)
+        # solver.solve_resident: each system's last residual and its decision to stop
+        self.sys_residual = ti.field(backend.real(), shape=MAX_SYSTEMS)
+        self.sys_stop = _int(MAX_SYSTEMS)
         # the same for the 'Quad ' check's six sums (solver.quad_check_colours)
         self.qpartial = ti.Vector.field(6, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
         self.residual = ti.field(backend.real(), shape=())
