@@ -548,7 +548,7 @@ class Simulation:
         elif self.schedule == "resident":
             sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
                               s.tolerance, s.check_every, self._blocks(), sk.resident_threads(),
-                              int(self.systems > 1))
+                              sk.resident_spread(), int(self.systems > 1))
             colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)

@@ -1018,6 +1018,13 @@ def resident_threads() -> int:
     return 1 if backend.arch() == "cpu" else RESIDENT_THREADS
 
 
+def resident_spread() -> int:
+    """Loop iterations per system of solve_resident: its threads on a GPU; on the CPU
+    SYSTEM_SPREAD, all but the first empty, so that a batch's systems go to the pool's threads
+    (Taichi's CPU runtime runs a loop of a few iterations on one thread: nlgs_serial)."""
+    return SYSTEM_SPREAD if backend.arch() == "cpu" else RESIDENT_THREADS
+
+
 @ti.func
 def resident_barrier(threads: ti.template()):
     if ti.static(threads > 1):
@@ -1043,18 +1050,21 @@ def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
 def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                    cs: ti.template(), st: ti.template(), ncol: ti.i32, max_sweeps: ti.i32,
                    tol: float, check_every: ti.i32, blocks: ti.template(),
-                   threads: ti.template(), batched: ti.template()):
+                   threads: ti.template(), spread: ti.template(), batched: ti.template()):
     """All sweeps of one step over the colours of `cs` (solve_item, as solve_colours), one
     block of `threads` threads per system, each system to its own convergence (as
     nlgs_serial: a system's numbers are those it would have alone). The residual is
     sweep_residual's, over the system's items (its bond items, then its contacts) in chunks of
     RESIDUAL_CHUNK, summed in chunk order: for one system the coloured schedule's numbers.
     Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
-    into st.sweeps / st.residual."""
-    ti.loop_config(block_dim=threads)
-    for t in range(p.systems[None] * threads):
-        sy = t // threads
-        tid = t % threads
+    into st.sweeps / st.residual. `spread` loop iterations per system, the first `threads` of
+    them its block's threads (resident_threads, resident_spread)."""
+    ti.loop_config(block_dim=spread, serialize=ti.static(backend.serial_loops()))
+    for t in range(p.systems[None] * spread):
+        sy = t // spread
+        tid = t % spread
+        if tid >= threads:
+            continue
         q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
         nb = bd.total[None]
         qb0, qb1 = bd.start[q0], bd.start[q1]
