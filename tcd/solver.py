@@ -2,7 +2,7 @@
 
 Each local problem is solved exactly (laws.py) with the latest body velocities, and its impulse
 increment is applied to the two bodies at once, so the contacts see each other implicitly
-through the body velocities. Two schedules run the same local solves:
+through the body velocities. Four schedules run the same local solves:
 - "serial": every sweep visits bonds then contacts in canonical order inside ONE kernel launch
   for all sweeps (no launch overhead; the true sequential NLGS). Best on a few CPU cores.
 - "coloured": bond items (particle bond blocks, or single bonds) and contacts are greedily
