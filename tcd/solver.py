@@ -676,6 +676,18 @@ def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
         apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
 
 
+@ti.func
+def gather_system_stats(p: ti.template(), st: ti.template()):
+    """Over the batched systems: the most sweeps and the largest residual (fixed order)."""
+    sweeps = 0
+    residual = 0.0
+    for sy in range(p.systems[None]):
+        sweeps = ti.max(sweeps, st.sys_sweeps[sy])
+        residual = ti.max(residual, st.sys_residual[sy])
+    st.sweeps[None] = sweeps
+    st.residual[None] = residual
+
+
 @ti.kernel
 def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                 st: ti.template(), max_sweeps: ti.i32, tol: float, check_every: ti.i32,
@@ -780,16 +792,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                     g2_prev = g2
             st.sys_sweeps[sy] = sweeps
             st.sys_residual[sy] = residual
-    # over the systems: the most sweeps and the largest residual (fixed order)
     ti.loop_config(serialize=True)
     for _ in range(1):
-        sweeps = 0
-        residual = 0.0
-        for sy in range(p.systems[None]):
-            sweeps = ti.max(sweeps, st.sys_sweeps[sy])
-            residual = ti.max(residual, st.sys_residual[sy])
-        st.sweeps[None] = sweeps
-        st.residual[None] = residual
+        gather_system_stats(p, st)
 
 
 @ti.func
@@ -1131,13 +1136,7 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
             st.sys_residual[sy] = residual
     ti.loop_config(serialize=True)
     for _ in range(1):
-        sweeps = 0
-        residual = 0.0
-        for sy in range(p.systems[None]):
-            sweeps = ti.max(sweeps, st.sys_sweeps[sy])
-            residual = ti.max(residual, st.sys_residual[sy])
-        st.sweeps[None] = sweeps
-        st.residual[None] = residual
+        gather_system_stats(p, st)
 
 
 @ti.kernel
