@@ -74,6 +74,23 @@ def schedule_settings(name: str) -> dict:
     return {"schedule": name}
 
 
+def assert_batch_steps_as_alone(sims, steps: int):
+    """Step each simulation of `sims` alone and all of them batched, `steps` times: at every
+    step the batch's sweeps per system must be each one's alone, and at the end its velocities
+    theirs, bit for bit. Returns the batch."""
+    import numpy as np
+    from tcd.simulation import Simulation
+    batch = Simulation.batch(list(sims))
+    for _ in range(steps):
+        alone = [o.step().sweeps for o in sims]
+        batch.step()
+        np.testing.assert_array_equal(batch.system_stats()[0], alone)
+    v = batch.velocities()
+    for s, o in enumerate(sims):
+        np.testing.assert_array_equal(v[batch.system_slice(s)], o.velocities())
+    return batch
+
+
 def env_without_thread_settings(**extra) -> dict:
     """This process's environment for a child, less TCD_CPU_THREADS, TCD_PARALLEL_LOOPS
     (pytest_configure sets the first) and TCD_FAST_MATH, plus `extra`."""

@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from conftest import assert_batch_steps_as_alone
 from tcd import packing, walls
 from tcd.simulation import Simulation, SolverSettings
 
@@ -64,14 +65,7 @@ def test_batch_steps_each_system_as_alone(pair, precision):
         assert o.create_bonds(2e-4) > 20
         o.set_walls([o.walls[0], dataclasses.replace(o.walls[1], motion="constant",
                                                       velocity=(0.02, 0.0, 0.0), start=o.time)])
-    batch = Simulation.batch([a, b])
-    for _ in range(60):
-        ra, rb = a.step(), b.step()
-        batch.step()
-        np.testing.assert_array_equal(batch.system_stats()[0], [ra.sweeps, rb.sweeps])
-    v = batch.velocities()
-    np.testing.assert_array_equal(v[batch.system_slice(0)], a.velocities())
-    np.testing.assert_array_equal(v[batch.system_slice(1)], b.velocities())
+    batch = assert_batch_steps_as_alone((a, b), 60)
     assert batch.bonds_intact_count() == a.bonds_intact_count() + b.bonds_intact_count()
 
 

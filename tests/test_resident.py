@@ -14,6 +14,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from conftest import assert_batch_steps_as_alone
 from tcd import packing, walls
 from tcd.simulation import Simulation, SolverSettings
 
@@ -86,14 +87,7 @@ def test_batch_steps_each_system_as_alone(backend):
         np.testing.assert_array_equal(v[batch.system_slice(s)], o.velocities())
     for o in (a, b):
         shear_wall(o)
-    batch = Simulation.batch([a, b])
-    for _ in range(40):
-        ra, rb = a.step(), b.step()
-        batch.step()
-        np.testing.assert_array_equal(batch.system_stats()[0], [ra.sweeps, rb.sweeps])
-    v = batch.velocities()
-    np.testing.assert_array_equal(v[batch.system_slice(0)], a.velocities())
-    np.testing.assert_array_equal(v[batch.system_slice(1)], b.velocities())
+    assert_batch_steps_as_alone((a, b), 40)
 
 
 def test_resident_schedule_refuses_the_quad_check(backend):
