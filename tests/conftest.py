@@ -76,19 +76,22 @@ def schedule_settings(name: str) -> dict:
 
 def assert_batch_steps_as_alone(sims, steps: int):
     """Step each simulation of `sims` alone and all of them batched, `steps` times: at every
-    step the batch's sweeps per system must be each one's alone, and at the end its velocities
-    theirs, bit for bit. Returns the batch."""
+    step the batch's sweeps per system must be each one's alone, and at the end its positions
+    and velocities theirs, bit for bit. Returns the batch and the sweeps alone (steps x
+    systems)."""
     import numpy as np
     from tcd.simulation import Simulation
     batch = Simulation.batch(list(sims))
+    sweeps = []
     for _ in range(steps):
-        alone = [o.step().sweeps for o in sims]
+        sweeps.append([o.step().sweeps for o in sims])
         batch.step()
-        np.testing.assert_array_equal(batch.system_stats()[0], alone)
-    v = batch.velocities()
+        np.testing.assert_array_equal(batch.system_stats()[0], sweeps[-1])
+    x, v = batch.positions(), batch.velocities()
     for s, o in enumerate(sims):
+        np.testing.assert_array_equal(x[batch.system_slice(s)], o.positions())
         np.testing.assert_array_equal(v[batch.system_slice(s)], o.velocities())
-    return batch
+    return batch, np.array(sweeps)
 
 
 def env_without_thread_settings(**extra) -> dict:

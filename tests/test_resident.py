@@ -9,35 +9,20 @@ each system converges on its own, so each must step exactly as it does alone (th
 colouring of a batch gives each system its colours alone). On a GPU (`pytest --arch gpu`) the
 same checks hold with 256 threads per block.
 """
-import dataclasses
 
 import numpy as np
 import pytest
 
 from conftest import assert_batch_steps_as_alone
-from tcd import packing, walls
+from test_batch import pour as batch_pour
+from test_batch import shear_wall
 from tcd.simulation import Simulation, SolverSettings
 
-R = 0.02
 
-
-def pour(seed: int, schedule: str, n: int = 120, radii=None):
-    rng = np.random.default_rng(seed)
-    r = packing.course_radii("surface", n, rng) * 0.5 if radii is None else rng.permutation(radii)
-    x = packing.lattice_column(r, 2 * R, 0.0, rng, max_height=0.2)
-    top = float(x[:, 2].max() + r.max())
-    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=R, name="bottom"),
-          walls.cylinder((0, 0, 0), (0, 0, 1), R, (0.0, top + 0.01), friction=0.2, name="mould")]
+def pour(seed: int, schedule: str, radii=None):
+    """test_batch's pour (120 grains into a mould), greedy colouring on every backend."""
     settings = SolverSettings(max_sweeps=300, schedule=schedule, colouring="greedy")
-    return Simulation(r, x, walls=wl, friction=0.7, settings=settings,
-                      domain=((-R, -R, 0.0), (R, R, top)))
-
-
-def shear_wall(sim):
-    """Bond the pile and move its mould sideways (bond items in the colours, a moving wall)."""
-    assert sim.create_bonds(2e-4) > 20
-    sim.set_walls([sim.walls[0], dataclasses.replace(sim.walls[1], motion="constant",
-                                                     velocity=(0.02, 0.0, 0.0), start=sim.time)])
+    return batch_pour(seed, radii=radii, settings=settings)
 
 
 def assert_same_state(a, b):
@@ -69,22 +54,10 @@ def test_one_system_is_the_coloured_schedule_bit_for_bit(backend):
 def test_batch_steps_each_system_as_alone(backend):
     a = pour(1, "resident")
     b = pour(2, "resident", radii=a.radii())
-    batch = Simulation.batch([a, b])
-    sweeps = []
-    for _ in range(200):
-        ra, rb = a.step(), b.step()
-        batch.step()
-        sweeps.append((ra.sweeps, rb.sweeps, *batch.system_stats()[0]))
-    sweeps = np.array(sweeps)
+    batch, sweeps = assert_batch_steps_as_alone((a, b), 200)
     assert sweeps[:, 0].max() > 5
     assert np.any(sweeps[:, 0] != sweeps[:, 1]), "the two systems must stop at different sweeps"
-    np.testing.assert_array_equal(sweeps[:, 0], sweeps[:, 2])
-    np.testing.assert_array_equal(sweeps[:, 1], sweeps[:, 3])
-    assert batch.last.sweeps == max(sweeps[-1, 2], sweeps[-1, 3])
-    x, v = batch.positions(), batch.velocities()
-    for s, o in enumerate((a, b)):
-        np.testing.assert_array_equal(x[batch.system_slice(s)], o.positions())
-        np.testing.assert_array_equal(v[batch.system_slice(s)], o.velocities())
+    assert batch.last.sweeps == sweeps[-1].max()
     for o in (a, b):
         shear_wall(o)
     assert_batch_steps_as_alone((a, b), 40)
