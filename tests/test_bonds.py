@@ -367,7 +367,7 @@ def test_a_loaded_bonded_state_refits_its_contact_buffer_and_moves_as_the_origin
 
 @pytest.mark.parametrize("mode, schedule", [("paper", "serial"), ("burgers", "serial"),
                                             ("burgers", "partitioned"), ("burgers", "coloured"),
-                                            ("burgers", "coloured-rounds")])
+                                            ("burgers", "coloured-rounds"), ("burgers", "resident")])
 def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule,
                                                                  schedule_on_backend):
     """A 1 mm grain bonded between two fixed 8 mm grains, pushed along the line by F: the two

@@ -269,7 +269,7 @@ def test_colours_per_launch_changes_no_number(monkeypatch):
 
 
 # --- contact mechanics ---------------------------------------------------------------------------
-@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured"])
+@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured", "resident"])
 def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol, schedule_on_backend):
     schedule_on_backend(schedule)
     r = 0.004
@@ -285,7 +285,7 @@ def test_sphere_at_rest_on_plane_carries_m_g_h(schedule, tol, schedule_on_backen
     np.testing.assert_allclose(sim.wall_force(0), [0, 0, -mass(r) * G], rtol=tol)
 
 
-@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured"])
+@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured", "resident"])
 def test_a_sweep_that_unloads_every_contact_is_not_converged(schedule, tol, schedule_on_backend):
     """Three touching frictionless spheres, no gravity: 0 moves into 1, and the contact 1-2,
     visited after 0-1, starts warm with an impulse R_B whose push on 1 takes it away from 0
@@ -351,11 +351,13 @@ def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
 
 
 @pytest.mark.parametrize("check_every", [1, 3])
-@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured-greedy", "coloured-rounds"])
+@pytest.mark.parametrize("schedule", ["serial", "partitioned", "coloured-greedy", "coloured-rounds",
+                                      "resident"])
 def test_vertical_column_carries_the_weight_above_each_contact(schedule, check_every, tol,
                                                                 precision, schedule_on_backend):
     """(partitioned: two slabs of spheres, the contact between them a boundary item;
-    coloured: the two colourings, warm start and projection colour by colour; check_every 3:
+    coloured: the two colourings, warm start and projection colour by colour; resident: the
+    coloured sweeps in one launch; check_every 3:
     convergence tested every third sweep, so each step ends on a multiple of 3 or at the cap)"""
     schedule_on_backend(schedule)
     if check_every > 1 and precision == "f32":
