@@ -980,6 +980,34 @@ def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
     cs.change[q] = ti.Vector([da, ra])
 
 
+@ti.func
+def change_chunk(cs: ti.template(), ch, nitems, n1, qb0, qc0):
+    """(sum |dR|, sum |R|) of the last sweep over chunk ch (RESIDUAL_CHUNK items, in order) of
+    a list of `nitems` items: the v-th is item qb0 + v for v < n1, else item qc0 + v - n1 (a
+    system's bond items, then its contacts; for all the items: n1 = nitems, qb0 = 0)."""
+    d = 0.0
+    r = 0.0
+    for v in range(ch * RESIDUAL_CHUNK, ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
+        q = qb0 + v
+        if v >= n1:
+            q = qc0 + v - n1
+        d += cs.change[q][0]
+        r += cs.change[q][1]
+    return ti.Vector([d, r])
+
+
+@ti.func
+def partials_residual(cs: ti.template(), base, nchunks):
+    """impulse_residual of the chunk partials cs.partial[base .. base + nchunks - 1], summed in
+    chunk order."""
+    d = 0.0
+    r = 0.0
+    for k in range(nchunks):
+        d += cs.partial[base + k][0]
+        r += cs.partial[base + k][1]
+    return impulse_residual(d, r)
+
+
 @ti.kernel
 def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
     """Relative impulse change of the last sweep: partial sums over fixed chunks of
@@ -992,20 +1020,10 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
     (convergence = "quad") counts each bond once in every schedule."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
-        d = 0.0
-        r = 0.0
-        for q in range(c * RESIDUAL_CHUNK, ti.min(count, (c + 1) * RESIDUAL_CHUNK)):
-            d += cs.change[q][0]
-            r += cs.change[q][1]
-        cs.partial[c] = ti.Vector([d, r])
+        cs.partial[c] = change_chunk(cs, c, count, count, 0, 0)
     ti.loop_config(serialize=True)
     for _ in range(1):
-        d = 0.0
-        r = 0.0
-        for c in range((count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK):
-            d += cs.partial[c][0]
-            r += cs.partial[c][1]
-        cs.residual[None] = impulse_residual(d, r)
+        cs.residual[None] = partials_residual(cs, 0, (count + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK)
     return cs.residual[None]
 
 
@@ -1103,24 +1121,11 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
             if sweeps % check_every == 0 or sweeps >= max_sweeps:
                 ch = tid
                 while ch < nchunks:
-                    d = 0.0
-                    r = 0.0
-                    for v in range(ch * RESIDUAL_CHUNK, ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
-                        q = qb0 + v
-                        if v >= n1:
-                            q = nb + c0 + v - n1
-                        d += cs.change[q][0]
-                        r += cs.change[q][1]
-                    cs.partial[base + ch] = ti.Vector([d, r])
+                    cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, nb + c0)
                     ch += threads
                 resident_barrier(threads)
                 if tid == 0:
-                    d = 0.0
-                    r = 0.0
-                    for k in range(nchunks):
-                        d += cs.partial[base + k][0]
-                        r += cs.partial[base + k][1]
-                    res = impulse_residual(d, r)
+                    res = partials_residual(cs, base, nchunks)
                     stop = 0
                     if res <= tol or sweeps >= max_sweeps:
                         stop = 1
