@@ -548,7 +548,7 @@ class Simulation:
         elif self.schedule == "resident":
             sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
                               s.tolerance, s.check_every, self._blocks(), sk.resident_threads(),
-                              sk.resident_spread(), int(self.systems > 1))
+                              sk.resident_spread())
             colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)
@@ -633,7 +633,7 @@ class Simulation:
         if (self.colours is None or self.colours.capacity < need
                 or self.colours.capacity >= 2 * capacity_class(need)):
             release(self.colours)
-            self.colours = acquire(ColourSet, need, self.particles.capacity)
+            self.colours = acquire(ColourSet, need, self.particles.capacity, self.systems)
         cs = self.colours
         rounds = s.colouring == "rounds" or (s.colouring == "auto" and _auto_arch() != "cpu")
         if rounds:
@@ -647,9 +647,10 @@ class Simulation:
                 sk.colour_round(self.n, ct, bd, cs, ncol, ncol * sk.COLOUR_PASSES, blocks)
                 ncol += 1
             else:
-                sk.colour_rounds_order(self.n, ct, bd, cs, self.stats, ncol, blocks)
+                sk.colour_rounds_order(self.n, self.particles, ct, bd, cs, self.stats, ncol,
+                                       blocks)
         else:
-            sk.colour_greedy(self.n, ct, bd, cs, self.stats, blocks)
+            sk.colour_greedy(self.n, self.particles, ct, bd, cs, self.stats, blocks)
         if self.stats.colour_overflow[None]:
             raise CapacityError("contact colouring needs more than "
                                 f"{sk.MAX_COLOURS} colours (a body with that many contacts)")

@@ -839,15 +839,16 @@ def block_mark(bd: ti.template(), cs: ti.template(), q, w, bit):
 
 
 @ti.kernel
-def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
-                  st: ti.template(), blocks: ti.template()):
+def colour_greedy(n: ti.i32, p: ti.template(), ct: ti.template(), bd: ti.template(),
+                  cs: ti.template(), st: ti.template(), blocks: ti.template()):
     """Greedy colouring of the bond items (first, so they always get the same colours) then
     the contacts, in canonical order. `blocks` (static) 0: item q < nb is bond q; 1: item
     q < n is the bond block of particle q (solve_particle_bonds: q and all its bonded
     neighbours are its bodies, so one colour holds blocks two bonds apart at least). Then
     contact q - nb (nb = n with blocks). A counting sort lists the items colour by colour in
-    `cs.order` (CSR `cs.start`, canonical order inside a colour). Broken bonds and particles
-    without intact bonds get colour -1 and are left out. Sets st.colours, st.colour_overflow."""
+    `cs.order` (CSR `cs.start`), inside a colour system by system (CSR `cs.sys_start`), and
+    in canonical order inside a system. Broken bonds and particles without intact bonds get
+    colour -1 and are left out. Sets st.colours, st.colour_overflow."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(n):
         for w in ti.static(range(COLOUR_WORDS)):
@@ -914,11 +915,21 @@ def colour_greedy(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.templa
     for c in range(MAX_COLOURS):
         cs.cursor[c] = cs.start[c]
     ti.loop_config(serialize=True)
-    for q in range(nb + nc):
-        c = cs.item_colour[q]
-        if c >= 0:
-            cs.order[cs.cursor[c]] = q
-            cs.cursor[c] += 1
+    for _ in range(1):
+        nsys = p.systems[None]
+        for sy in range(nsys):
+            for c in range(ncol):
+                cs.sys_start[c * nsys + sy] = cs.cursor[c]
+            qb0, qb1, qc0, qc1 = system_items(p, ct, bd, sy, blocks)
+            for v in range(qb1 - qb0 + qc1 - qc0):
+                q = qb0 + v
+                if v >= qb1 - qb0:
+                    q = qc0 + v - (qb1 - qb0)
+                c = cs.item_colour[q]
+                if c >= 0:
+                    cs.order[cs.cursor[c]] = q
+                    cs.cursor[c] += 1
+        cs.sys_start[ncol * nsys] = cs.start[ncol]
     st.colours[None] = ncol
     st.colour_overflow[None] = overflow
 
@@ -1055,6 +1066,20 @@ def resident_barrier(threads: ti.template()):
 
 
 @ti.func
+def system_items(p: ti.template(), ct: ti.template(), bd: ti.template(), sy,
+                 blocks: ti.template()):
+    """System sy's items: bond items qb0 .. qb1 - 1 (its bonds, or with blocks its particles'
+    blocks), then contacts as items qc0 .. qc1 - 1 (contact q - nb, nb the bond items)."""
+    q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
+    nb = bd.total[None]
+    qb0, qb1 = bd.start[q0], bd.start[q1]
+    if ti.static(blocks == 1):
+        nb = p.count[None]
+        qb0, qb1 = q0, q1
+    return qb0, qb1, nb + ct.start[q0], nb + ct.start[q1]
+
+
+@ti.func
 def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
                 blocks: ti.template()):
     """The batched system of item q (bond item q < nb, else contact q - nb)."""
@@ -1073,12 +1098,13 @@ def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
 def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                    cs: ti.template(), st: ti.template(), ncol: ti.i32, max_sweeps: ti.i32,
                    tol: float, check_every: ti.i32, blocks: ti.template(),
-                   threads: ti.template(), spread: ti.template(), batched: ti.template()):
+                   threads: ti.template(), spread: ti.template()):
     """All sweeps of one step over the colours of `cs` (solve_item, as solve_colours), one
     block of `threads` threads per system, each system to its own convergence (as
     nlgs_serial: a system's numbers are those it would have alone). The residual is
     sweep_residual's, over the system's items (its bond items, then its contacts) in chunks of
     RESIDUAL_CHUNK, summed in chunk order: for one system the coloured schedule's numbers.
+    A block reads its own system's items of each colour only (cs.sys_start).
     Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
     into st.sweeps / st.residual. `spread` loop iterations per system, the first `threads` of
     them its block's threads (resident_threads, resident_spread)."""
@@ -1088,40 +1114,30 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
         tid = t % spread
         if tid >= threads:
             continue
-        q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
-        nb = bd.total[None]
-        qb0, qb1 = bd.start[q0], bd.start[q1]
-        if ti.static(blocks == 1):
-            nb = p.count[None]
-            qb0, qb1 = q0, q1
-        c0, c1 = ct.start[q0], ct.start[q1]
+        nsys = p.systems[None]
+        qb0, qb1, qc0, qc1 = system_items(p, ct, bd, sy, blocks)
         n1 = qb1 - qb0
-        nitems = n1 + c1 - c0
+        nitems = n1 + qc1 - qc0
         nchunks = (nitems + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK
         # this system's chunk partials in cs.partial: at most floor(earlier items / chunk)
         # + (earlier systems) chunks come before them
-        base = (qb0 + c0) // RESIDUAL_CHUNK + sy
+        base = (qb0 + qc0 - bond_items(p.count[None], bd, blocks)) // RESIDUAL_CHUNK + sy
         sweeps = 0
         residual = 0.0
         done = 0
         while done == 0:
             for c in range(ncol):
-                s = cs.start[c] + tid
-                end = cs.start[c + 1]
+                s = cs.sys_start[c * nsys + sy] + tid
+                end = cs.sys_start[c * nsys + sy + 1]
                 while s < end:
-                    solve = 1
-                    if ti.static(batched == 1):
-                        if item_system(p, ct, bd, cs.order[s], nb, blocks) != sy:
-                            solve = 0
-                    if solve == 1:
-                        solve_item(p, wl, ct, bd, cs, s, blocks)
+                    solve_item(p, wl, ct, bd, cs, s, blocks)
                     s += threads
                 resident_barrier(threads)
             sweeps += 1
             if sweeps % check_every == 0 or sweeps >= max_sweeps:
                 ch = tid
                 while ch < nchunks:
-                    cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, nb + c0)
+                    cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, qc0)
                     ch += threads
                 resident_barrier(threads)
                 if tid == 0:
@@ -1342,16 +1358,19 @@ def colour_take(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r
 
 
 @ti.kernel
-def colour_rounds_order(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.template(),
-                        st: ti.template(), ncol: ti.i32, blocks: ti.template()):
-    """CSR of the items by colour (within a colour in no fixed order: its items share no
-    body, so the order changes no number); sets st.colours."""
+def colour_rounds_order(n: ti.i32, p: ti.template(), ct: ti.template(), bd: ti.template(),
+                        cs: ti.template(), st: ti.template(), ncol: ti.i32,
+                        blocks: ti.template()):
+    """CSR of the items by colour (cs.start) and, inside a colour, by system (cs.sys_start);
+    within a colour's system in no fixed order: its items share no body, so the order changes
+    no number. Sets st.colours."""
     ti.loop_config(serialize=True)
     for c in range(MAX_COLOURS):
         cs.start[c + 1] += cs.start[c]
+    nsys = p.systems[None]
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
-    for c in range(MAX_COLOURS):
-        cs.cursor[c] = cs.start[c]
+    for t in range(ncol * nsys):
+        cs.sys_cursor[t] = 0
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = n
@@ -1359,7 +1378,21 @@ def colour_rounds_order(n: ti.i32, ct: ti.template(), bd: ti.template(), cs: ti.
     for q in range(nb + ct.total[None]):
         c = cs.item_colour[q]
         if c >= 0:
-            cs.order[ti.atomic_add(cs.cursor[c], 1)] = q
+            ti.atomic_add(cs.sys_cursor[c * nsys + item_system(p, ct, bd, q, nb, blocks)], 1)
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        acc = 0
+        for t in range(ncol * nsys):
+            cs.sys_start[t] = acc
+            acc += cs.sys_cursor[t]
+            cs.sys_cursor[t] = cs.sys_start[t]
+        cs.sys_start[ncol * nsys] = acc
+    ti.loop_config(serialize=ti.static(backend.serial_loops()))
+    for q in range(nb + ct.total[None]):
+        c = cs.item_colour[q]
+        if c >= 0:
+            t = c * nsys + item_system(p, ct, bd, q, nb, blocks)
+            cs.order[ti.atomic_add(cs.sys_cursor[t], 1)] = q
     st.colours[None] = ncol
     st.colour_overflow[None] = 0
 

@@ -365,11 +365,18 @@ class ColourSet:
     colours (bit set); item_colour; order: items sorted by colour; start: CSR per colour;
     change: per item (|dR|, |R|) of the last sweep, for the residual."""
 
-    def __init__(self, capacity: int, particle_capacity: int):
-        self.capacity, self.pool_args = capacity, (particle_capacity,)
+    def __init__(self, capacity: int, particle_capacity: int, systems: int = 1):
+        self.capacity, self.pool_args = capacity, (particle_capacity, systems)
+        self.systems = systems
         self.mask = ti.field(ti.u32, shape=(particle_capacity, COLOUR_WORDS))
         self.item_colour, self.order = _int(capacity), _int(capacity)
         self.start, self.cursor = _int(MAX_COLOURS + 1), _int(MAX_COLOURS)
+        # within a colour the items are listed system by system: colour c's items of system sy
+        # are order[sys_start[c * systems + sy] .. sys_start[c * systems + sy + 1] - 1]
+        # (solver.solve_resident: a system's block reads its own items only); sys_cursor
+        # places them (solver.colour_rounds_order)
+        self.sys_start = _int(MAX_COLOURS * systems + 1)
+        self.sys_cursor = _int(MAX_COLOURS * systems)
         self.change = ti.Vector.field(2, backend.real(), shape=capacity)
         # parallel colouring by rounds (solver.colour_round*): per body, the round that
         # claimed it and the best bid of the current pass; coloured/active item counts

@@ -67,3 +67,43 @@ def test_resident_schedule_refuses_the_quad_check(backend):
     with pytest.raises(ValueError, match="resident schedule .* 'Quad ' check"):
         Simulation([0.001], [[0, 0, 0.01]],
                    settings=SolverSettings(schedule="resident", convergence="quad"))
+
+
+@pytest.mark.parametrize("colouring", ["greedy", "rounds"])
+@pytest.mark.parametrize("blocks", [False, True])
+def test_colour_lists_hold_each_system_apart(blocks, colouring):
+    """Inside each colour the items are listed system by system (cs.sys_start), so that a
+    system's block reads its own items only: range (c, s) holds exactly the items of colour c
+    whose bodies are system s's, and the ranges tile colour c's list (cs.start)."""
+    settings = SolverSettings(max_sweeps=300, schedule="resident", colouring=colouring,
+                              bond_blocks=blocks)
+    sims = [batch_pour(1, settings=settings)]
+    sims += [batch_pour(seed, radii=sims[0].radii(), settings=settings) for seed in (2, 3)]
+    for o in sims:
+        o.step(200)
+        shear_wall(o)                      # bonds: bond items (or blocks) and contacts
+    batch = Simulation.batch(sims)
+    batch.step()
+    cs, ct, bd = batch.colours, batch.contacts, batch.bonds
+    ncol, nsys = batch.last.colours, batch.systems
+    assert ncol > 1 and nsys == 3 and cs.systems == 3
+    system = np.repeat(np.arange(nsys), sims[0].n)
+    nbond, nc = int(bd.total[None]), int(ct.total[None])
+    first = (np.arange(batch.n) if blocks else bd.i.to_numpy()[:nbond])
+    item_system = system[np.concatenate([first, ct.i.to_numpy()[:nc]])]
+    col = cs.item_colour.to_numpy()[: len(item_system)]
+    order = cs.order.to_numpy()
+    start, sys_start = cs.start.to_numpy(), cs.sys_start.to_numpy()
+    filled = np.zeros(nsys, int)
+    for c in range(ncol):
+        assert sys_start[c * nsys] == start[c]
+        for s in range(nsys):
+            got = order[sys_start[c * nsys + s]: sys_start[c * nsys + s + 1]]
+            want = np.nonzero((col == c) & (item_system == s))[0]
+            assert sorted(got.tolist()) == want.tolist(), (c, s)
+            filled[s] += len(want) > 0
+    assert np.all(filled >= 2), filled
+    assert sys_start[ncol * nsys] == start[ncol] == np.count_nonzero(col >= 0)
+    for o in sims:
+        o.close()
+    batch.close()
