@@ -35,7 +35,7 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
                course: str = "binder", max_sweeps: int = 1000, schedule: str = "auto",
                threads: int = 2, colouring: str = "auto", check_every: int = 1,
                sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
-               convergence: str = "impulse"):
+               convergence: str = "impulse", acceleration: str = "nncg"):
     from .simulation import Simulation, SolverSettings
     rng = np.random.default_rng(seed)
     r = packing.course_radii(course, particles, rng)
@@ -49,7 +49,8 @@ def pour_setup(particles: int, seed: int, tolerance: float, *, radius: float = C
                                              colouring=colouring, check_every=check_every,
                                              sweep_order=sweep_order,
                                              warm_start_extrapolation=warm_start_extrapolation,
-                                             convergence=convergence),
+                                             convergence=convergence,
+                                             acceleration=acceleration),
                      domain=((-radius, -radius, 0.0), (radius, radius, top)))
     return sim
 
@@ -163,8 +164,9 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
          tolerance: float = 1e-4, seed: int = 1, schedule: str = "auto", threads: int = 2,
          colouring: str = "auto", check_every: int = 1, trace: str | None = None,
          sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
-         convergence: str = "impulse") -> dict:
-    """`schedule`, `threads`, `sweep_order`, `warm_start_extrapolation`, `convergence`: the solver's
+         convergence: str = "impulse", acceleration: str = "nncg") -> dict:
+    """`schedule`, `threads`, `sweep_order`, `warm_start_extrapolation`, `convergence`,
+    `acceleration`: the solver's
     (SolverSettings); `threads` only
     counts for the partitioned schedule. `trace`: a CSV path for one row per timed step (write_trace)."""
     _init(arch, precision)
@@ -174,7 +176,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every, sweep_order=sweep_order,
                          warm_start_extrapolation=warm_start_extrapolation,
-                         convergence=convergence)
+                         convergence=convergence, acceleration=acceleration)
     except packing.ColumnTooTall as exc:
         raise ValueError(f"{exc}: the pour benchmark keeps the 150 mm mould; for more spheres "
                          f"use `tcd bench scaling --sizes {particles}`, whose cylinder widens "
@@ -193,6 +195,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "sweep_order": sim.settings.sweep_order,
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
         "convergence": sim.settings.convergence,
+        "acceleration": sim.settings.acceleration,
         "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
@@ -266,7 +269,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
           schedule: str = "auto", threads: int = 2, colouring: str = "auto",
           bond_blocks: bool = True, check_every: int = 1, trace: str | None = None,
           sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
-          convergence: str = "impulse",
+          convergence: str = "impulse", acceleration: str = "nncg",
           renumber: bool = False) -> dict:
     """The shear stage of a run (protocols.Shear: bonds with the paper's law and tolerance,
     split rings, top plate on the highest grain, 50 mm/min) on a prepared sample, for `time`
@@ -300,7 +303,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
                          f'bond_blocks = {"true" if bond_blocks else "false"}\n'
                          f'check_every = {int(check_every)}\nsweep_order = "{sweep_order}"\n'
                          f'warm_start_extrapolation = {float(warm_start_extrapolation)!r}\n'
-                         f'convergence = "{convergence}"\n'
+                         f'convergence = "{convergence}"\nacceleration = "{acceleration}"\n'
                          f'[[stage]]\nkind = "shear"\nsample = {str(paths[0].resolve())!r}\n'
                          f'renumber = {"true" if renumber else "false"}\n'
                          # the benchmark's problem as in every figure of the README (sessions
@@ -331,6 +334,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "sweep_order": sim.settings.sweep_order,
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
         "convergence": sim.settings.convergence,
+        "acceleration": sim.settings.acceleration,
         "renumber": bool(renumber),
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,
@@ -355,7 +359,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
             progress=None, schedule: str = "auto", threads: int = 2,
             colouring: str = "auto", settle: float = 0.3, check_every: int = 1,
             sweep_order: str = "symmetric", warm_start_extrapolation: float = 0.0,
-            convergence: str = "impulse") -> dict:
+            convergence: str = "impulse", acceleration: str = "nncg") -> dict:
     """Seconds per particle per step against N: a settled-bed-like state is not needed here;
     each size pours a column of N binder-course spheres into a cylinder whose cross-section
     grows with N (same column height), timed over `steps` steps after `settle` s of pouring
@@ -391,7 +395,7 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         sim = pour_setup(int(n), 1, tolerance, radius=radius, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every, sweep_order=sweep_order,
                          warm_start_extrapolation=warm_start_extrapolation,
-                         convergence=convergence)
+                         convergence=convergence, acceleration=acceleration)
         t0 = time.perf_counter()
         for _ in range(int(round(settle / sim.settings.time_step))):
             sim.step()

@@ -345,7 +345,8 @@ def _run_bench(args) -> dict:
                      **({"sweep_order": args.sweep_order} if args.sweep_order != "symmetric" else {}),
                      **({"warm_start_extrapolation": args.warm_start_extrapolation}
                         if args.warm_start_extrapolation else {}),
-                     **({"convergence": args.convergence} if args.convergence != "impulse" else {}))
+                     **({"convergence": args.convergence} if args.convergence != "impulse" else {}),
+                     **({"acceleration": args.acceleration} if args.acceleration != "nncg" else {}))
     else:
         options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
@@ -363,6 +364,8 @@ def _run_bench(args) -> dict:
             options["warm_start_extrapolation"] = args.warm_start_extrapolation
         if args.convergence != "impulse":
             options["convergence"] = args.convergence
+        if args.acceleration != "nncg":
+            options["acceleration"] = args.acceleration
         if getattr(args, "sample", None):
             for k in range(getattr(args, "samples", 1)):
                 try:
@@ -593,6 +596,9 @@ def _schedule_options(parser) -> None:
     parser.add_argument("--sweep-order", choices=("forward", "symmetric"), default="symmetric",
                         help="Gauss-Seidel sweeps forward and backward in turn (default) or "
                              "all forward (fewer sweeps on a shear)")
+    parser.add_argument("--acceleration", choices=("nncg", "none"), default="nncg",
+                        help="conjugate-gradient momentum (NNCG) on the sweeps of the serial, "
+                        "partitioned and resident schedules (default), or plain Gauss-Seidel")
     parser.add_argument("--warm-start-extrapolation", type=_unit_interval, default=0.0, metavar="C",
                         help="start each step's bonds and lasting contacts from R_n + C (R_n - "
                              "R_n-1) instead of the last impulse R_n (default 0; 0.5 saves "

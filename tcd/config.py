@@ -108,9 +108,11 @@ class SolverConfig(_Model):
     "partitioned" (the serial sweep split over `threads` CPU threads; its numbers depend on
     `threads`), "coloured" or "resident" (the coloured schedule's colours, all sweeps of a step
     in one launch: one GPU thread block per system; each system to its own convergence);
-    acceleration: "nncg" (conjugate-gradient momentum on the serial sweeps) or
-    "none"; sweep_order: "symmetric" (forward and backward sweeps alternate, the default) or
-    "forward" (fewer sweeps on a shear; larger overlaps under a vibrating plate);
+    acceleration: "nncg" (conjugate-gradient momentum on the sweeps of the serial,
+    partitioned and resident schedules) or "none"; sweep_order: "symmetric" (forward and
+    backward sweeps alternate, the default) or "forward" (fewer sweeps on a shear; larger
+    overlaps under a vibrating plate; the coloured and resident schedules always sweep
+    forward);
     warm_start_extrapolation: c in [0, 1], each bond and lasting contact starts the step from
     R_n + c (R_n - R_n-1) (0: from R_n, the default);
     alert_ratio: alert distance / smallest radius; gravity (m/s^2, along -z);

@@ -133,12 +133,14 @@ class SolverSettings:
     schedule's colours with all sweeps of a step in one launch, one GPU thread block per
     system: solver.solve_resident; each system to its own convergence; no "quad" check) or
     "auto" (serial on CPU, coloured on GPU); threads: parts of the partitioned schedule; acceleration:
-    "nncg" (nonsmooth nonlinear conjugate gradient on top of the serial Gauss-Seidel sweeps) or
-    "none" (plain Gauss-Seidel; the coloured schedule is always plain); sweep_order:
+    "nncg" (nonsmooth nonlinear conjugate gradient on top of the Gauss-Seidel sweeps of the
+    serial, partitioned and resident schedules) or "none" (plain Gauss-Seidel; the coloured
+    schedule is always plain); sweep_order:
     "symmetric" (forward and backward sweeps alternate: the default, and the order of every
     shipped result) or "forward" (every sweep in item order: fewer sweeps on the shear, 25.0
     against 34.4 per step, but larger overlaps under the vibrating plate of a preparation:
-    README, "Performance"); the coloured schedule always sweeps its colours forward;
+    README, "Performance"); the coloured and resident schedules always sweep their colours
+    forward;
     warm_start_extrapolation c in [0, 1]: each bond, and each contact that carried an impulse
     at the last two steps, starts the step from R_n + c (R_n - R_n-1) instead of R_n (0, the
     default and the setting of every shipped result: the last impulse; the stopping rule is
@@ -547,8 +549,9 @@ class Simulation:
             colours = 0
         elif self.schedule == "resident":
             sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
-                              s.tolerance, s.check_every, self._blocks(), sk.resident_threads(),
-                              sk.resident_spread())
+                              s.tolerance, s.check_every, int(s.acceleration == "nncg"),
+                              self._blocks(),
+                              sk.resident_threads(), sk.resident_spread())
             colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)

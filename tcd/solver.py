@@ -1094,17 +1094,65 @@ def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
     return p.system[i]
 
 
+@ti.func
+def item_sweep_change(ct: ti.template(), bd: ti.template(), q, nb, blocks: ti.template()):
+    """sum |dR|^2 of item q over the sweep, dR against the snapshot in acc_d, which it
+    replaces by dR (the NNCG direction): a particle block counts the bonds whose first end is
+    its particle (each bond once), an intact bond itself, a contact itself."""
+    g2 = 0.0
+    if q < nb:
+        if ti.static(blocks == 1):
+            for e in range(bd.start[q], bd.start[q + 1]):
+                if bd.state[e] == INTACT:
+                    d2, _, _ = bond_sweep_change(bd, e)
+                    g2 += d2
+        elif bd.state[q] == INTACT:
+            d2, _, _ = bond_sweep_change(bd, q)
+            g2 += d2
+    else:
+        k = q - nb
+        dr = ct.impulse[k] - ct.acc_d[k]
+        ct.acc_d[k] = dr
+        g2 = dr.dot(dr)
+    return g2
+
+
+@ti.func
+def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb, beta,
+                  blocks: ti.template()):
+    """NNCG momentum of item q (bond_momentum, contact_momentum; a particle block: the bonds
+    whose first end is its particle, all among its bodies), then the snapshot of its impulses
+    in acc_d for the next sweep."""
+    if q < nb:
+        if ti.static(blocks == 1):
+            for e in range(bd.start[q], bd.start[q + 1]):
+                bond_momentum(p, bd, e, beta)
+                bd.acc_d[e] = bd.impulse[e]
+        else:
+            bond_momentum(p, bd, q, beta)
+            bd.acc_d[q] = bd.impulse[q]
+    else:
+        k = q - nb
+        contact_momentum(p, ct, k, beta)
+        ct.acc_d[k] = ct.impulse[k]
+
+
 @ti.kernel
 def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                    cs: ti.template(), st: ti.template(), ncol: ti.i32, max_sweeps: ti.i32,
-                   tol: float, check_every: ti.i32, blocks: ti.template(),
-                   threads: ti.template(), spread: ti.template()):
+                   tol: float, check_every: ti.i32, accel: ti.template(),
+                   blocks: ti.template(), threads: ti.template(), spread: ti.template()):
     """All sweeps of one step over the colours of `cs` (solve_item, as solve_colours), one
     block of `threads` threads per system, each system to its own convergence (as
     nlgs_serial: a system's numbers are those it would have alone). The residual is
     sweep_residual's, over the system's items (its bond items, then its contacts) in chunks of
-    RESIDUAL_CHUNK, summed in chunk order: for one system the coloured schedule's numbers.
-    A block reads its own system's items of each colour only (cs.sys_start).
+    RESIDUAL_CHUNK, summed in chunk order: for one system, with `accel` 0, the coloured
+    schedule's numbers. A block reads its own system's items of each colour only
+    (cs.sys_start). The colours are swept forward: reversing them on every second sweep took
+    more sweeps (seed-1 shear, 0.02 s: 91.6 mean sweeps against 70.3 plain, 56.8 against 28.5
+    with NNCG). `accel` (static) 1: NNCG as nlgs_serial's (the sweep's changes, summed over
+    the same chunks, give the momentum factor; the momentum is a pass over the colours, with
+    the snapshot of the impulses for the next sweep; never after the last sweep).
     Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
     into st.sweeps / st.residual. `spread` loop iterations per system, the first `threads` of
     them its block's threads (resident_threads, resident_spread)."""
@@ -1115,13 +1163,31 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
         if tid >= threads:
             continue
         nsys = p.systems[None]
+        nb = bond_items(p.count[None], bd, blocks)
         qb0, qb1, qc0, qc1 = system_items(p, ct, bd, sy, blocks)
         n1 = qb1 - qb0
         nitems = n1 + qc1 - qc0
         nchunks = (nitems + RESIDUAL_CHUNK - 1) // RESIDUAL_CHUNK
         # this system's chunk partials in cs.partial: at most floor(earlier items / chunk)
         # + (earlier systems) chunks come before them
-        base = (qb0 + qc0 - bond_items(p.count[None], bd, blocks)) // RESIDUAL_CHUNK + sy
+        base = (qb0 + qc0 - nb) // RESIDUAL_CHUNK + sy
+        if ti.static(accel == 1):
+            # the first sweep's snapshot
+            v = tid
+            while v < nitems:
+                q = qb0 + v
+                if v >= n1:
+                    q = qc0 + v - n1
+                if q < nb:
+                    if ti.static(blocks == 1):
+                        for e in range(bd.start[q], bd.start[q + 1]):
+                            bd.acc_d[e] = bd.impulse[e]
+                    else:
+                        bd.acc_d[q] = bd.impulse[q]
+                else:
+                    ct.acc_d[q - nb] = ct.impulse[q - nb]
+                v += threads
+            resident_barrier(threads)
         sweeps = 0
         residual = 0.0
         done = 0
@@ -1134,22 +1200,59 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                     s += threads
                 resident_barrier(threads)
             sweeps += 1
+            check = 0
             if sweeps % check_every == 0 or sweeps >= max_sweeps:
+                check = 1
+            sums = check
+            if ti.static(accel == 1):
+                sums = 1
+            if sums == 1:
                 ch = tid
                 while ch < nchunks:
-                    cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, qc0)
+                    if check == 1:
+                        cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, qc0)
+                    if ti.static(accel == 1):
+                        g2 = 0.0
+                        for v in range(ch * RESIDUAL_CHUNK,
+                                       ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
+                            q = qb0 + v
+                            if v >= n1:
+                                q = qc0 + v - n1
+                            g2 += item_sweep_change(ct, bd, q, nb, blocks)
+                        cs.gpartial[base + ch] = g2
                     ch += threads
                 resident_barrier(threads)
                 if tid == 0:
-                    res = partials_residual(cs, base, nchunks)
-                    stop = 0
-                    if res <= tol or sweeps >= max_sweeps:
-                        stop = 1
-                    cs.sys_residual[sy] = res
-                    cs.sys_stop[sy] = stop
+                    if check == 1:
+                        res = partials_residual(cs, base, nchunks)
+                        stop = 0
+                        if res <= tol or sweeps >= max_sweeps:
+                            stop = 1
+                        cs.sys_residual[sy] = res
+                        cs.sys_stop[sy] = stop
+                    if ti.static(accel == 1):
+                        g2 = 0.0
+                        for k in range(nchunks):
+                            g2 += cs.gpartial[base + k]
+                        g2_prev = cs.sys_g2[sy]
+                        if sweeps == 1:
+                            g2_prev = 0.0
+                        cs.sys_beta[sy] = nncg_beta(g2, g2_prev, sweeps)
+                        cs.sys_g2[sy] = g2
                 resident_barrier(threads)
-                residual = cs.sys_residual[sy]
-                done = cs.sys_stop[sy]
+                if check == 1:
+                    residual = cs.sys_residual[sy]
+                    done = cs.sys_stop[sy]
+                if ti.static(accel == 1):
+                    if done == 0:
+                        beta = cs.sys_beta[sy]
+                        for c in range(ncol):
+                            s = cs.sys_start[c * nsys + sy] + tid
+                            end = cs.sys_start[c * nsys + sy + 1]
+                            while s < end:
+                                item_momentum(p, ct, bd, cs.order[s], nb, beta, blocks)
+                                s += threads
+                            resident_barrier(threads)
                 # every thread has read the decision before thread 0 may write the next one
                 resident_barrier(threads)
         if tid == 0:
