@@ -70,8 +70,7 @@ def test_resident_schedule_refuses_the_quad_check(backend):
                    settings=SolverSettings(schedule="resident", convergence="quad"))
 
 
-@pytest.mark.parametrize("colouring", ["greedy", "rounds"])
-@pytest.mark.parametrize("blocks", [False, True])
+@pytest.mark.parametrize("blocks, colouring", [(False, "greedy"), (True, "rounds")])
 def test_colour_lists_hold_each_system_apart(blocks, colouring):
     """Inside each colour the items are listed system by system (cs.sys_start), so that a
     system's block reads its own items only: range (c, s) holds exactly the items of colour c
