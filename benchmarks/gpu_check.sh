@@ -69,9 +69,14 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # Session 37 gave it NNCG momentum (the default: 28.5 mean sweeps against 70.3 on
             # the seed-1 shear, on any backend) and per-system colour lists; the plain stage
             # gives the GPU's cost of the momentum pass.
-    if TAIL=20 stage pytest_resident 200 python3 -m pytest -p no:cacheprovider --arch gpu -v -rfE \
-        --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py -k resident; then
+            # Then issue 8's target itself: the whole five-sample study (15000 steps of the five
+            # samples at tolerance 1e-5) as one batch, its stage limit the 5 min asked; its
+            # progress lines give the rate if it is cut.
+    if TAIL=20 stage pytest_resident 200 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
+        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
+        -k resident; then
         stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out "$O/study_gpu"
         stage shear_batch5_resident 120 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         stage pour_resident 90 python3 -m tcd bench pour --particles 2600 --time 0.4 --arch gpu --json --check-every 4 --schedule resident
         stage shear_resident_plain 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident --acceleration none
