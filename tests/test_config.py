@@ -550,3 +550,16 @@ def test_the_scenario_bound_on_max_sweeps_is_the_engine_s():
         field = model.model_fields["max_sweeps"]
         assert [m.le for m in field.metadata if hasattr(m, "le")] == [MAX_SWEEPS], model
 
+
+
+def test_gpu_study_is_the_study_on_the_resident_schedule():
+    """scenarios/leutner_shear_gpu.toml is leutner_shear.toml but for its name, description
+    and schedule: a change to the study's calibrated settings must reach both files."""
+    study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml").model_dump()
+    gpu = load_scenario(ROOT / "scenarios" / "leutner_shear_gpu.toml").model_dump()
+    assert gpu["solver"]["schedule"] == "resident" != study["solver"]["schedule"]
+    for d in (study, gpu):
+        for key in ("name", "description", "source", "text"):
+            d.pop(key)
+        d["solver"].pop("schedule")
+    assert gpu == study
