@@ -68,7 +68,8 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # If its tests fail, its figures are skipped (the time goes to the others).
             # Session 37 gave it NNCG momentum (the default: 28.5 mean sweeps against 70.3 on
             # the seed-1 shear, on any backend) and per-system colour lists; the plain stage
-            # gives the GPU's cost of the momentum pass.
+            # gives the GPU's cost of the momentum pass, the 512 one another block size (256
+            # is the default: f64 registers per thread).
             # Then issue 8's target itself: the whole five-sample study (15000 steps of the five
             # samples at tolerance 1e-5) as one batch, its stage limit the 5 min asked; its
             # progress lines give the rate if it is cut.
@@ -80,6 +81,7 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
         (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
         stage shear_batch5_resident 120 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         stage pour_resident 90 python3 -m tcd bench pour --particles 2600 --time 0.4 --arch gpu --json --check-every 4 --schedule resident
+        stage shear_resident_512 60 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         stage shear_resident_plain 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident --acceleration none
     fi
     stage shear_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5

@@ -330,6 +330,9 @@ class Simulation:
         self.alert = settings.alert_ratio * self.r_min
         # the coloured schedule's launch shape (environment, for GPU measurements), read once
         self._per_launch = _colours_per_launch()
+        # the resident schedule's block (threads, loop iterations) per system, read once
+        self._resident_shape = ((sk.resident_threads(), sk.resident_spread())
+                                if settings.schedule == "resident" else (1, 1))
         self._base_in_field = _solve_base_in_field()
         self.schedule = settings.schedule
         if self.schedule == "auto":
@@ -550,8 +553,7 @@ class Simulation:
         elif self.schedule == "resident":
             sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
                               s.tolerance, s.check_every, int(s.acceleration == "nncg"),
-                              self._blocks(),
-                              sk.resident_threads(), sk.resident_spread())
+                              self._blocks(), *self._resident_shape)
             colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)

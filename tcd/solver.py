@@ -28,6 +28,8 @@ Everything here is deterministic: no float atomics, reductions in a fixed order.
 contact updates are plain load/store (no atomics): no two threads ever touch one body.
 """
 
+import os
+
 import taichi as ti
 
 from . import backend, contacts, laws
@@ -1047,16 +1049,35 @@ def sweep_residual(cs: ti.template(), count: ti.i32) -> float:
 RESIDENT_THREADS = 256      # threads per block on a GPU (f64 local solves: registers per thread)
 
 
+def resident_gpu_threads(text: str | None = None) -> int:
+    """Threads per block of solve_resident on a GPU: RESIDENT_THREADS, or the environment
+    variable TCD_RESIDENT_THREADS (a multiple of 32 from 32 to 1024), for measuring the block
+    size on a device (each value compiles its own kernel; the numbers are the same for any:
+    a colour's items share no body, and the sums go chunk by chunk in chunk order)."""
+    text = os.environ.get("TCD_RESIDENT_THREADS", "") if text is None else text
+    if not text:
+        return RESIDENT_THREADS
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if not (32 <= k <= 1024 and k % 32 == 0):
+        raise ValueError(f"TCD_RESIDENT_THREADS={text!r}: expected a multiple of 32 from 32 "
+                         "to 1024 (threads per GPU block)")
+    return k
+
+
 def resident_threads() -> int:
-    """Threads per system of solve_resident on the running backend."""
-    return 1 if backend.arch() == "cpu" else RESIDENT_THREADS
+    """Threads per system of solve_resident on the running backend (one on the CPU, whose
+    loops have no barrier)."""
+    return 1 if backend.arch() == "cpu" else resident_gpu_threads()
 
 
 def resident_spread() -> int:
     """Loop iterations per system of solve_resident: its threads on a GPU; on the CPU
     SYSTEM_SPREAD, all but the first empty, so that a batch's systems go to the pool's threads
     (Taichi's CPU runtime runs a loop of a few iterations on one thread: nlgs_serial)."""
-    return SYSTEM_SPREAD if backend.arch() == "cpu" else RESIDENT_THREADS
+    return SYSTEM_SPREAD if backend.arch() == "cpu" else resident_gpu_threads()
 
 
 @ti.func

@@ -166,3 +166,16 @@ def test_nncg_needs_fewer_sweeps_on_the_resident_schedule(backend):
     for sim in runs.values():
         assert sim.last.residual <= sim.settings.tolerance
         sim.close()
+
+
+@pytest.mark.parametrize("text, threads", [("", 256), ("64", 64), ("1024", 1024)])
+def test_gpu_block_size_is_read_from_the_environment(text, threads):
+    from tcd import solver
+    assert solver.resident_gpu_threads(text) == threads
+
+
+@pytest.mark.parametrize("text", ["0", "100", "2048", "many", "-32"])
+def test_a_bad_gpu_block_size_is_refused(text):
+    from tcd import solver
+    with pytest.raises(ValueError, match="TCD_RESIDENT_THREADS=.*multiple of 32 from 32 to 1024"):
+        solver.resident_gpu_threads(text)
