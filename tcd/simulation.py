@@ -877,6 +877,17 @@ class Simulation:
         self.sample_index = index.astype(np.int32)
 
     @property
+    def sweep_order_used(self) -> str:
+        """The sweep order the schedule runs: settings.sweep_order on the serial and partitioned
+        schedules; the coloured and resident ones sweep their colours forward."""
+        return "forward" if self.schedule in COLOURED else self.settings.sweep_order
+
+    @property
+    def acceleration_used(self) -> str:
+        """settings.acceleration, except on the coloured schedule, which is always plain."""
+        return "none" if self.schedule == "coloured" else self.settings.acceleration
+
+    @property
     def renumbered(self) -> bool:
         """True when some particle's index differs from its sample_index."""
         return not np.array_equal(self.sample_index, self._identity_index())

@@ -179,3 +179,15 @@ def test_a_bad_gpu_block_size_is_refused(text):
     from tcd import solver
     with pytest.raises(ValueError, match="TCD_RESIDENT_THREADS=.*multiple of 32 from 32 to 1024"):
         solver.resident_gpu_threads(text)
+
+
+@pytest.mark.parametrize("schedule, order, acceleration", [
+    ("serial", "symmetric", "nncg"), ("coloured", "forward", "none"),
+    ("resident", "forward", "nncg")])
+def test_benchmarks_report_the_sweep_order_and_momentum_each_schedule_runs(
+        backend, schedule, order, acceleration):
+    """The coloured and resident schedules sweep their colours forward whatever sweep_order
+    says, and the coloured one is always plain: `tcd bench` reports what ran."""
+    sim = Simulation([0.001], [[0, 0, 0.01]], settings=SolverSettings(schedule=schedule))
+    assert (sim.sweep_order_used, sim.acceleration_used) == (order, acceleration)
+    sim.close()
