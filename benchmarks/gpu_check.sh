@@ -65,7 +65,9 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # first (same numbers as the coloured schedule; a stage timeout means a barrier
             # deadlock), then its shear, one sample and five batched, against the coloured
             # schedule's in the same call.
-            # If its tests fail, its figures are skipped (the time goes to the others).
+            # If its tests time out (a deadlock?), its figures are skipped (the time goes to
+            # the others); a failed test (e.g. a last-bit difference from the GPU's fused
+            # multiply-adds) still lets the figures run.
             # Session 37 gave it NNCG momentum (the default: 28.5 mean sweeps against 70.3 on
             # the seed-1 shear, on any backend) and per-system colour lists; the plain stage
             # gives the GPU's cost of the momentum pass, the 512 one another block size (256
@@ -73,9 +75,10 @@ next)       # next session, one call (DEADLINE=570): the figures session 33 coul
             # Then issue 8's target itself: the whole five-sample study (15000 steps of the five
             # samples at tolerance 1e-5) as one batch, its stage limit the 5 min asked; its
             # progress lines give the rate if it is cut.
-    if TAIL=20 stage pytest_resident 200 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
+    TAIL=20 stage pytest_resident 200 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
         --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
-        -k resident; then
+        -k resident
+    if [ $? -ne 124 ]; then     # a time-out may be a barrier deadlock: then no resident figures
         stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
         (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
