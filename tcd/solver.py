@@ -949,7 +949,7 @@ def solve_colours(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti
         ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(base + c, MAX_COLOURS)],
                        cs.start[ti.min(base + c + 1, MAX_COLOURS)]):
-            solve_item(p, wl, ct, bd, cs, s, blocks)
+            solve_item(p, wl, ct, bd, cs, s, blocks, 0)
 
 
 @ti.kernel
@@ -965,7 +965,7 @@ def solve_colours_next(p: ti.template(), wl: ti.template(), ct: ti.template(),
         ti.loop_config(serialize=ti.static(backend.serial_loops()))
         for s in range(cs.start[ti.min(cs.base[None] + c, MAX_COLOURS)],
                        cs.start[ti.min(cs.base[None] + c + 1, MAX_COLOURS)]):
-            solve_item(p, wl, ct, bd, cs, s, blocks)
+            solve_item(p, wl, ct, bd, cs, s, blocks, 0)
     ti.loop_config(serialize=True)
     for _ in range(1):
         nxt = cs.base[None] + k
@@ -976,7 +976,10 @@ def solve_colours_next(p: ti.template(), wl: ti.template(), ct: ti.template(),
 
 @ti.func
 def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
-               cs: ti.template(), s, blocks: ti.template()):
+               cs: ti.template(), s, blocks: ti.template(), accel: ti.template()):
+    """The local solve of the item at position s of the colour lists; its (|dR|, |R|) into
+    cs.change. `accel` (static) 1: a contact also keeps its dR in acc_d (NNCG's direction:
+    a contact is visited once per sweep, so that is its change over the sweep)."""
     nb = bd.total[None]
     if ti.static(blocks == 1):
         nb = p.count[None]
@@ -989,7 +992,12 @@ def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
         else:
             da, ra = solve_bond(p, wl, bd, q)
     else:
-        da, ra = solve_contact(p, wl, ct, q - nb, p.count[None], 1)
+        if ti.static(accel == 1):
+            dr, r_new = solve_contact_dr(p, wl, ct, q - nb, p.count[None])
+            ct.acc_d[q - nb] = dr
+            da, ra = dr.norm(), r_new.norm()
+        else:
+            da, ra = solve_contact(p, wl, ct, q - nb, p.count[None], 1)
     cs.change[q] = ti.Vector([da, ra])
 
 
@@ -1116,10 +1124,12 @@ def item_system(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
 
 
 @ti.func
-def item_sweep_change(ct: ti.template(), bd: ti.template(), q, nb, blocks: ti.template()):
-    """sum |dR|^2 of item q over the sweep, dR against the snapshot in acc_d, which it
-    replaces by dR (the NNCG direction): a particle block counts the bonds whose first end is
-    its particle (each bond once), an intact bond itself, a contact itself."""
+def item_sweep_change(ct: ti.template(), bd: ti.template(), cs: ti.template(), q, nb,
+                      blocks: ti.template()):
+    """sum |dR|^2 of item q over the sweep (NNCG): a particle block counts the bonds whose
+    first end is its particle (each bond once), an intact bond itself, dR against the snapshot
+    in acc_d, which it replaces by dR (the direction); a contact its visit's |dR|^2 (its dR is
+    in acc_d already: solve_item)."""
     g2 = 0.0
     if q < nb:
         if ti.static(blocks == 1):
@@ -1131,10 +1141,7 @@ def item_sweep_change(ct: ti.template(), bd: ti.template(), q, nb, blocks: ti.te
             d2, _, _ = bond_sweep_change(bd, q)
             g2 += d2
     else:
-        k = q - nb
-        dr = ct.impulse[k] - ct.acc_d[k]
-        ct.acc_d[k] = dr
-        g2 = dr.dot(dr)
+        g2 = cs.change[q][0] * cs.change[q][0]
     return g2
 
 
@@ -1142,8 +1149,8 @@ def item_sweep_change(ct: ti.template(), bd: ti.template(), q, nb, blocks: ti.te
 def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb, beta,
                   blocks: ti.template()):
     """NNCG momentum of item q (bond_momentum, contact_momentum; a particle block: the bonds
-    whose first end is its particle, all among its bodies), then the snapshot of its impulses
-    in acc_d for the next sweep."""
+    whose first end is its particle, all among its bodies); a bond's impulse after it is the
+    snapshot in acc_d for the next sweep."""
     if q < nb:
         if ti.static(blocks == 1):
             for e in range(bd.start[q], bd.start[q + 1]):
@@ -1153,9 +1160,7 @@ def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
             bond_momentum(p, bd, q, beta)
             bd.acc_d[q] = bd.impulse[q]
     else:
-        k = q - nb
-        contact_momentum(p, ct, k, beta)
-        ct.acc_d[k] = ct.impulse[k]
+        contact_momentum(p, ct, q - nb, beta)
 
 
 @ti.kernel
@@ -1173,7 +1178,8 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
     more sweeps (seed-1 shear, 0.02 s: 91.6 mean sweeps against 70.3 plain, 56.8 against 28.5
     with NNCG). `accel` (static) 1: NNCG as nlgs_serial's (the sweep's changes, summed over
     the same chunks, give the momentum factor; the momentum is a pass over the colours, with
-    the snapshot of the impulses for the next sweep; never after the last sweep).
+    the bonds' snapshot for the next sweep (a contact's dR is kept by its visit); never after
+    the last sweep).
     Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
     into st.sweeps / st.residual. `spread` loop iterations per system, the first `threads` of
     them its block's threads (resident_threads, resident_spread)."""
@@ -1193,20 +1199,15 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
         # + (earlier systems) chunks come before them
         base = (qb0 + qc0 - nb) // RESIDUAL_CHUNK + sy
         if ti.static(accel == 1):
-            # the first sweep's snapshot
+            # the first sweep's snapshot of the bonds (a contact keeps its visit's dR)
             v = tid
-            while v < nitems:
+            while v < n1:
                 q = qb0 + v
-                if v >= n1:
-                    q = qc0 + v - n1
-                if q < nb:
-                    if ti.static(blocks == 1):
-                        for e in range(bd.start[q], bd.start[q + 1]):
-                            bd.acc_d[e] = bd.impulse[e]
-                    else:
-                        bd.acc_d[q] = bd.impulse[q]
+                if ti.static(blocks == 1):
+                    for e in range(bd.start[q], bd.start[q + 1]):
+                        bd.acc_d[e] = bd.impulse[e]
                 else:
-                    ct.acc_d[q - nb] = ct.impulse[q - nb]
+                    bd.acc_d[q] = bd.impulse[q]
                 v += threads
             resident_barrier(threads)
         sweeps = 0
@@ -1217,7 +1218,7 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                 s = cs.sys_start[c * nsys + sy] + tid
                 end = cs.sys_start[c * nsys + sy + 1]
                 while s < end:
-                    solve_item(p, wl, ct, bd, cs, s, blocks)
+                    solve_item(p, wl, ct, bd, cs, s, blocks, accel)
                     s += threads
                 resident_barrier(threads)
             sweeps += 1
@@ -1239,7 +1240,7 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                             q = qb0 + v
                             if v >= n1:
                                 q = qc0 + v - n1
-                            g2 += item_sweep_change(ct, bd, q, nb, blocks)
+                            g2 += item_sweep_change(ct, bd, cs, q, nb, blocks)
                         cs.gpartial[base + ch] = g2
                     ch += threads
                 resident_barrier(threads)
