@@ -1146,19 +1146,29 @@ def item_sweep_change(ct: ti.template(), bd: ti.template(), cs: ti.template(), q
 
 
 @ti.func
+def bond_item_snapshot(bd: ti.template(), q, blocks: ti.template()):
+    """The impulses of bond item q (a particle block: the bonds whose first end is its
+    particle) into acc_d: the start of the next sweep, for item_sweep_change."""
+    if ti.static(blocks == 1):
+        for e in range(bd.start[q], bd.start[q + 1]):
+            bd.acc_d[e] = bd.impulse[e]
+    else:
+        bd.acc_d[q] = bd.impulse[q]
+
+
+@ti.func
 def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb, beta,
                   blocks: ti.template()):
     """NNCG momentum of item q (bond_momentum, contact_momentum; a particle block: the bonds
-    whose first end is its particle, all among its bodies); a bond's impulse after it is the
-    snapshot in acc_d for the next sweep."""
+    whose first end is its particle, all among its bodies); then a bond item's snapshot for
+    the next sweep."""
     if q < nb:
         if ti.static(blocks == 1):
             for e in range(bd.start[q], bd.start[q + 1]):
                 bond_momentum(p, bd, e, beta)
-                bd.acc_d[e] = bd.impulse[e]
         else:
             bond_momentum(p, bd, q, beta)
-            bd.acc_d[q] = bd.impulse[q]
+        bond_item_snapshot(bd, q, blocks)
     else:
         contact_momentum(p, ct, q - nb, beta)
 
@@ -1202,16 +1212,12 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
             # the first sweep's snapshot of the bonds (a contact keeps its visit's dR)
             v = tid
             while v < n1:
-                q = qb0 + v
-                if ti.static(blocks == 1):
-                    for e in range(bd.start[q], bd.start[q + 1]):
-                        bd.acc_d[e] = bd.impulse[e]
-                else:
-                    bd.acc_d[q] = bd.impulse[q]
+                bond_item_snapshot(bd, qb0 + v, blocks)
                 v += threads
             resident_barrier(threads)
         sweeps = 0
         residual = 0.0
+        g2_prev = 0.0           # thread 0's: the last sweep's sum |dR|^2
         done = 0
         while done == 0:
             for c in range(ncol):
@@ -1256,11 +1262,8 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                         g2 = 0.0
                         for k in range(nchunks):
                             g2 += cs.gpartial[base + k]
-                        g2_prev = cs.sys_g2[sy]
-                        if sweeps == 1:
-                            g2_prev = 0.0
                         cs.sys_beta[sy] = nncg_beta(g2, g2_prev, sweeps)
-                        cs.sys_g2[sy] = g2
+                        g2_prev = g2
                 resident_barrier(threads)
                 if check == 1:
                     residual = cs.sys_residual[sy]

@@ -393,9 +393,8 @@ class ColourSet:
         self.sys_residual = ti.field(backend.real(), shape=MAX_SYSTEMS)
         self.sys_stop = _int(MAX_SYSTEMS)
         # solver.solve_resident with NNCG: per chunk of items the sweep's sum |dR|^2, per
-        # system the last sweep's sum and the momentum factor
+        # system the momentum factor
         self.gpartial = ti.field(backend.real(), shape=capacity // RESIDUAL_CHUNK + MAX_SYSTEMS + 2)
-        self.sys_g2 = ti.field(backend.real(), shape=MAX_SYSTEMS)
         self.sys_beta = ti.field(backend.real(), shape=MAX_SYSTEMS)
         # the same for the 'Quad ' check's six sums (solver.quad_check_colours)
         self.qpartial = ti.Vector.field(6, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
