@@ -47,6 +47,26 @@ s33)        # session 33, one call (DEADLINE=570): the shear with session 17's c
     stage scaling_1e6 100 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.05 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4
     ;;
+s38)        # session 38, first call (DEADLINE=570): the resident shear first (75 s: a barrier
+            # deadlock shows as a time-out here, cheaply), then issue 8's study (the five samples,
+            # 15000 steps at tolerance 1e-5, one batch) in its 5 min, then the resident tests
+            # with what is left
+    stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+    if [ $? -ne 124 ]; then
+        TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
+        (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
+    fi
+    TAIL=30 stage pytest_resident 300 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
+        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
+        -k resident
+    ;;
+s38b)       # session 38, second call if the machine is still warm (DEADLINE = what is left): the
+            # momentum pass's price, the resident pour, and the 1e6 pour into a settling bed
+    stage shear_resident_plain 45 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident --acceleration none
+    stage pour_resident 60 python3 -m tcd bench pour --particles 2600 --time 0.4 --arch gpu --json --check-every 4 --schedule resident
+    stage scaling_1e6 200 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.3 \
+        --arch gpu --out "$O/scaling_gpu" --json --check-every 4
+    ;;
 next)       # next session, one call (DEADLINE=570): the figures session 33 could not take.
             # The benchmarks now time from the third step (session 33 found the second step's
             # kernels compiled inside the timed loop), so the first stage checks that no phase

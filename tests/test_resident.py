@@ -31,7 +31,22 @@ def assert_same_state(a, b):
     np.testing.assert_array_equal(a.contact_arrays()["impulse"], b.contact_arrays()["impulse"])
 
 
+def assert_close_state(a, b, rel):
+    """Positions, velocities, impulses and the shear wall's force equal to `rel` of each
+    array's largest magnitude."""
+    for get in (lambda s: s.positions(), lambda s: s.velocities(),
+                lambda s: s.contact_arrays()["impulse"], lambda s: s.wall_force(1)):
+        ya, yb = np.asarray(get(a)), np.asarray(get(b))
+        np.testing.assert_allclose(ya, yb, rtol=0, atol=rel * np.abs(ya).max())
+
+
 def test_one_system_is_the_coloured_schedule_bit_for_bit(backend):
+    """Bit for bit on the CPU. On a GPU the bonded steps are compared to 1e-9 only: the two
+    schedules' kernels are compiled apart, and with fast math the compiler may fuse a
+    multiply-add in one and not in the other (H200, session 38: the 200 pour steps were equal
+    bit for bit; the first bonded step took 21 sweeps in both, and its residual differed from
+    the 13th digit on, 9.712922789086598e-05 against 9.712922789086988e-05)."""
+    exact = backend[0] == "cpu"
     a = pour(1, "coloured")
     b = pour(1, "resident", acceleration="none")
     sweeps = np.array([(a.step().sweeps, b.step().sweeps) for _ in range(200)])
@@ -44,10 +59,17 @@ def test_one_system_is_the_coloured_schedule_bit_for_bit(backend):
         shear_wall(sim)
     for _ in range(60):
         ra, rb = a.step(), b.step()
-        assert (ra.sweeps, ra.residual) == (rb.sweeps, rb.residual)
-    assert_same_state(a, b)
+        assert ra.sweeps == rb.sweeps
+        if exact:
+            assert ra.residual == rb.residual
+        else:
+            assert ra.residual == pytest.approx(rb.residual, rel=1e-9)
     assert a.bonds_intact_count() == b.bonds_intact_count() > 20
-    np.testing.assert_array_equal(a.wall_force(1), b.wall_force(1))
+    if exact:
+        assert_same_state(a, b)
+        np.testing.assert_array_equal(a.wall_force(1), b.wall_force(1))
+    else:
+        assert_close_state(a, b, 1e-9)
     a.close()
     b.close()
 
