@@ -1,11 +1,15 @@
 #!/bin/bash
 # GPU checks and figures, run on a lent GPU machine (the device tool) from the repository root:
-#   bash benchmarks/gpu_check.sh next   (s33: session 33's first call; s17, s17b: session 17's two calls; tests, bench, quick,
-#   diag, check, final, full: session 15's)
+#   bash benchmarks/gpu_check.sh next   (then next2 if the machine is still warm; s38, s38b:
+#   session 38's two calls; s33: session 33's; s17, s17b: session 17's two calls; tests, bench,
+#   quick, diag, check, final, full: session 15's)
 # with DEADLINE=S (seconds) to end the later stages in time
-# Logs go to $OUT (default /tmp/tcd_gpu). The device tool returns at most 8 files, so session 33
-# ran its call as (carry: [".whl"], timeout_s 590; for the next session, `next` instead of s33):
-#   S=$OUT; export OUT=/tmp/g; DEADLINE=570 bash benchmarks/gpu_check.sh s33; tar czf $S/logs.tgz -C /tmp g
+# Logs go to $OUT (default /tmp/tcd_gpu). The device tool returns at most 8 files, so session 38
+# ran its calls as (carry: [".whl"], timeout_s 590; then at once, within the machine's 30 s of
+# idle, the second with DEADLINE=300 and timeout_s 320; the start and both calls used 854 s
+# of the 900):
+#   S=$OUT; export OUT=/tmp/g; DEADLINE=565 bash benchmarks/gpu_check.sh s38; tar czf $S/logs.tgz -C /tmp g
+#   S=$OUT; export OUT=/tmp/g2; DEADLINE=300 bash benchmarks/gpu_check.sh s38b; tar czf $S/logs2.tgz -C /tmp g2
 # Where the machine has no taichi, wheels carried in .whl/ (Python 3.12, see
 # docs/measurements.md) are installed to /tmp/site first.
 set -u
@@ -67,51 +71,35 @@ s38b)       # session 38, second call if the machine is still warm (DEADLINE = w
     stage scaling_1e6 200 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.3 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4
     ;;
-next)       # next session, one call (DEADLINE=570): the figures session 33 could not take.
-            # The benchmarks now time from the third step (session 33 found the second step's
-            # kernels compiled inside the timed loop), so the first stage checks that no phase
-            # of the loop has a compile outlier: about 8.3e-6 over steps 3-100 (steps 3-10
-            # take about 124 sweeps, later ones 40), ~1.04 ms per sweep in every phase; the
-            # second runs the CPU's best options on the GPU (forward sweeps, 0.1 s, as the
-            # README's 5.0e-6 and 3.9e-6 were taken); then five samples batched (the study's
-            # 5 min needs them in the same launches) and the 1e6 pour into a settling bed.
-            # test_neighbour_skin_changes_no_number (past 300 s on the H200) is left out.
-            # Since session 35 an open contact with no impulse returns from its visit early
-            # (solver.OPEN_SKIP; same numbers): TCD_OPEN_SKIP=0 in front of a stage gives the
-            # figure without it, for comparison with session 33's.
-            # Session 36 added the resident schedule (all sweeps of a step in one launch, one
-            # thread block of 256 per system, a block barrier after each colour; written and
-            # checked on the CPU only, where a block is one thread): its tests on the GPU
-            # first (same numbers as the coloured schedule; a stage timeout means a barrier
-            # deadlock), then its shear, one sample and five batched, against the coloured
-            # schedule's in the same call.
-            # If its tests time out (a deadlock?), its figures are skipped (the time goes to
-            # the others); a failed test (e.g. a last-bit difference from the GPU's fused
-            # multiply-adds) still lets the figures run.
-            # Session 37 gave it NNCG momentum (the default: 28.5 mean sweeps against 70.3 on
-            # the seed-1 shear, on any backend) and per-system colour lists; the plain stage
-            # gives the GPU's cost of the momentum pass, the 512 one another block size (256
-            # is the default: f64 registers per thread).
-            # Then issue 8's target itself: the whole five-sample study (15000 steps of the five
-            # samples at tolerance 1e-5) as one batch, its stage limit the 5 min asked; its
-            # progress lines give the rate if it is cut.
-    TAIL=20 stage pytest_resident 200 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
-        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
-        -k resident
+next)       # next session, first call (DEADLINE=565). Session 38 (H200) measured the resident
+            # schedule: its tests pass on the GPU (23 of 24, the 24th a 13th-digit residual
+            # difference from the coloured schedule, now compared to 1e-9 there); the seed-1
+            # shear 1.39e-5 s per particle-step, 59 ms per step at 13.6 sweeps (about 13 ms
+            # per step besides the sweeps, 3.3 ms per NNCG sweep against 1.7 plain: the pass
+            # over the colours cost a sweep); the five-sample study 6.7 steps/s (about 37 min).
+            # Since then the momentum moves the bodies from their own velocities
+            # (solver.body_momentum: one pass over the items and one over the particles, no
+            # colours): the first stage gives its figure, the second session 38's (items) in
+            # the same call, the third a block of 512 threads; then the study; then the tests
+            # with what is left.
+    stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     if [ $? -ne 124 ]; then     # a time-out may be a barrier deadlock: then no resident figures
-        stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        stage shear_resident_items 45 env TCD_RESIDENT_MOMENTUM=items python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        stage shear_resident_512 45 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
         (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
-        stage shear_batch5_resident 120 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
-        stage pour_resident 90 python3 -m tcd bench pour --particles 2600 --time 0.4 --arch gpu --json --check-every 4 --schedule resident
-        stage shear_resident_512 60 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
-        stage shear_resident_plain 60 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident --acceleration none
     fi
-    stage shear_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
-    stage shear_fwd_ext_ce4 75 python3 -m tcd bench shear --sample "$S" --time 0.1 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --sweep-order forward
-    stage shear_batch5_ext_ce4 200 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5
-    stage scaling_1e6 200 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.3 \
+    TAIL=30 stage pytest_resident 300 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
+        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
+        -k resident
+    ;;
+next2)      # next session, second call if the machine is still warm (DEADLINE = what is left):
+            # session 38's pour_resident (2600 spheres to 0.4 s) and 1e6 (--settle 0.3) stages
+            # ran past their 60 and 200 s: shorter ones
+    stage shear_batch5_resident 60 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+    stage scaling_1e6 150 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.1 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4
+    stage pour_resident 60 python3 -m tcd bench pour --particles 2600 --time 0.1 --arch gpu --json --check-every 4 --schedule resident
     ;;
 s17)        # session 17, one call (DEADLINE=420): named GPU test results, then the figures
     stage pytest_gpu 150 python3 -m pytest -q -p no:cacheprovider --arch gpu -n 16 --dist load \

@@ -333,6 +333,9 @@ class Simulation:
         # the resident schedule's block (threads, loop iterations) per system, read once
         self._resident_shape = ((sk.resident_threads(), sk.resident_spread())
                                 if settings.schedule == "resident" else (1, 1))
+        # and its NNCG momentum (2: the bodies' own, 1: over the colours), read once
+        self._resident_momentum = (sk.resident_momentum() if settings.schedule == "resident"
+                                   else 0)
         self._base_in_field = _solve_base_in_field()
         self.schedule = settings.schedule
         if self.schedule == "auto":
@@ -410,11 +413,13 @@ class Simulation:
         if ncells * self.systems >= 2**31:
             raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
                              "indices: enlarge cell_size or batch fewer systems")
-        # about 8 buckets per particle up to the number of cells (a power of two: c mod 2^k),
+        # about 4 buckets per particle up to the number of cells (a power of two: c mod 2^k),
         # and at least the smallest capacity class, so that small simulations share their
-        # grid and its kernels (state.MIN_SLOTS; the buckets past the cells stay empty)
+        # grid and its kernels (state.MIN_SLOTS; the buckets past the cells stay empty). 8 per
+        # particle (sessions 3-37) cost 45 B per particle more on the seed-1 shear (65536
+        # buckets against 32768), for the same contacts and no measurable time
         buckets = 64
-        while buckets < max(min(8 * self.n, ncells), state_mod.MIN_SLOTS):
+        while buckets < max(min(4 * self.n, ncells), state_mod.MIN_SLOTS):
             buckets *= 2
         grid = acquire(Grid, capacity, buckets)
         grid.configure(lo, self.cell_size, dims, buckets)
@@ -552,7 +557,7 @@ class Simulation:
             colours = 0
         elif self.schedule == "resident":
             sk.solve_resident(p, wl, ct, bd, self.colours, self.stats, ncol, s.max_sweeps,
-                              s.tolerance, s.check_every, int(s.acceleration == "nncg"),
+                              s.tolerance, s.check_every, self._resident_accel(),
                               self._blocks(), *self._resident_shape)
             colours = ncol
         else:
@@ -599,6 +604,10 @@ class Simulation:
         pk.nlgs_partitioned(p, wl, ct, bd, self.stats, self.partition, s.threads, s.max_sweeps,
                             s.tolerance, s.check_every, symmetric, accel, blocks, quad)
 
+    def _resident_accel(self) -> int:
+        """solve_resident's `accel`: 0 plain, else the NNCG momentum (solver.resident_momentum)."""
+        return self._resident_momentum if self.settings.acceleration == "nncg" else 0
+
     def _blocks(self) -> int:
         return 1 if self.settings.bond_blocks else 0
 
@@ -635,10 +644,12 @@ class Simulation:
         # that or more (a loaded bonded state's contact buffer is refitted after its first step:
         # the set sized then held 32768 slots for about 9300 items, 89.5 B per sphere of the
         # seed-1 shear in `change` alone; the colours do not depend on the capacity)
+        bodies = self._resident_accel() == 2        # its per-particle scratch
         if (self.colours is None or self.colours.capacity < need
-                or self.colours.capacity >= 2 * capacity_class(need)):
+                or self.colours.capacity >= 2 * capacity_class(need)
+                or self.colours.pool_args[2] != bodies):
             release(self.colours)
-            self.colours = acquire(ColourSet, need, self.particles.capacity, self.systems)
+            self.colours = acquire(ColourSet, need, self.particles.capacity, self.systems, bodies)
         cs = self.colours
         rounds = s.colouring == "rounds" or (s.colouring == "auto" and _auto_arch() != "cpu")
         if rounds:

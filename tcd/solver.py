@@ -625,6 +625,58 @@ def nncg_beta(g2, g2_prev, sweeps):
 
 
 @ti.func
+def bond_momentum_impulse(bd: ti.template(), b, beta):
+    """bond_momentum on the impulse and direction only: its bodies get theirs from
+    body_momentum."""
+    if bd.state[b] == INTACT:
+        pb = bd.acc_p[b]
+        if beta > 0.0:
+            bd.impulse[b] += beta * pb
+        bd.acc_p[b] = beta * pb + bd.acc_d[b]
+
+
+@ti.func
+def contact_momentum_impulse(ct: ti.template(), k, beta):
+    """contact_momentum on the impulse and direction only (body_momentum moves the bodies)."""
+    pk = ct.acc_p[k]
+    if beta > 0.0 and ct.wnn[k] > 0.0:
+        ct.impulse[k] += beta * pk
+    ct.acc_p[k] = beta * pk + ct.acc_d[k]
+
+
+@ti.func
+def body_sweep_start(p: ti.template(), cs: ti.template(), i):
+    """Particle i's velocities at the start of a sweep, for body_momentum."""
+    cs.sweep_v[i] = p.v[i]
+    cs.sweep_w[i] = p.w[i]
+
+
+@ti.func
+def body_momentum(p: ti.template(), cs: ti.template(), i, beta):
+    """The NNCG momentum of particle i, from its own velocities: what the momentum of its
+    items (bond_momentum, contact_momentum: R += beta p) gives it, without visiting them.
+    Velocities are linear in the impulses, v = v_free + M^-1 H^T R, and a sweep changes them
+    only through its items' impulses, so the sweep's change of v is M^-1 H^T g (g the
+    impulse changes over the sweep), and the body part of each item's direction
+    p = beta p + g is u = M^-1 H^T p, kept per body as u = beta u + (v - v at the sweep's
+    start). The momentum moves the body by beta u_prev, the sum of its items' beta M^-1 H^T p
+    (exact but for rounding; kinematic bodies never change velocity, so they get none). Then
+    the next sweep's start."""
+    dv = p.v[i] - cs.sweep_v[i]
+    dw = p.w[i] - cs.sweep_w[i]
+    if beta > 0.0:
+        uv = beta * cs.dir_v[i]
+        uw = beta * cs.dir_w[i]
+        p.v[i] = p.v[i] + uv
+        p.w[i] = p.w[i] + uw
+        dv += uv
+        dw += uw
+    cs.dir_v[i] = dv
+    cs.dir_w[i] = dw
+    body_sweep_start(p, cs, i)
+
+
+@ti.func
 def bond_momentum(p: ti.template(), bd: ti.template(), b, beta):
     """NNCG momentum of intact bond b: R += beta p (applied to its bodies), p = beta p + dR."""
     if bd.state[b] == INTACT:
@@ -703,7 +755,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     sweep's change g_k is used as a descent direction and the impulses get the momentum
     beta p_{k-1}, beta = |g_k|^2 / |g_{k-1}|^2, restarted (p = g) when beta > 1. The momentum
     is applied to the bodies at once (one extra pass over the items), so velocities always
-    equal v_free + M^-1 H^T R. The step ends after a plain sweep, never after a momentum pass,
+    equal v_free + M^-1 H^T R. (The resident schedule applies it to the bodies from their own
+    velocities instead, body_momentum: on this schedule's one thread per system that gained
+    nothing, 2.02e-5 against 1.95e-5 s per particle-step on the seed-1 shear, 0.02 s.) The step ends after a plain sweep, never after a momentum pass,
     so the final impulses satisfy the contact law. `blocks` (static): 1 relaxes the bonds
     particle by particle (solve_particle_bonds), 0 bond by bond.
 
@@ -978,7 +1032,7 @@ def solve_colours_next(p: ti.template(), wl: ti.template(), ct: ti.template(),
 def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
                cs: ti.template(), s, blocks: ti.template(), accel: ti.template()):
     """The local solve of the item at position s of the colour lists; its (|dR|, |R|) into
-    cs.change. `accel` (static) 1: a contact also keeps its dR in acc_d (NNCG's direction:
+    cs.change. `accel` (static) >= 1: a contact also keeps its dR in acc_d (NNCG's direction:
     a contact is visited once per sweep, so that is its change over the sweep)."""
     nb = bd.total[None]
     if ti.static(blocks == 1):
@@ -992,7 +1046,7 @@ def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
         else:
             da, ra = solve_bond(p, wl, bd, q)
     else:
-        if ti.static(accel == 1):
+        if ti.static(accel >= 1):
             dr, r_new = solve_contact_dr(p, wl, ct, q - nb, p.count[None])
             ct.acc_d[q - nb] = dr
             da, ra = dr.norm(), r_new.norm()
@@ -1073,6 +1127,23 @@ def resident_gpu_threads(text: str | None = None) -> int:
         raise ValueError(f"TCD_RESIDENT_THREADS={text!r}: expected a multiple of 32 from 32 "
                          "to 1024 (threads per GPU block)")
     return k
+
+
+RESIDENT_MOMENTUM = {"bodies": 2, "items": 1}
+
+
+def resident_momentum(text: str | None = None) -> int:
+    """solve_resident's `accel` for NNCG: 2, the momentum of the bodies from their own
+    velocities (body_momentum; the default), or with the environment variable
+    TCD_RESIDENT_MOMENTUM=items 1, session 37's pass over the colours, for measuring the two
+    on a device (the same sweeps but for rounding)."""
+    text = os.environ.get("TCD_RESIDENT_MOMENTUM", "") if text is None else text
+    if not text:
+        return RESIDENT_MOMENTUM["bodies"]
+    if text not in RESIDENT_MOMENTUM:
+        raise ValueError(f"TCD_RESIDENT_MOMENTUM={text!r}: expected one of "
+                         f"{', '.join(RESIDENT_MOMENTUM)}")
+    return RESIDENT_MOMENTUM[text]
 
 
 def resident_threads() -> int:
@@ -1158,19 +1229,29 @@ def bond_item_snapshot(bd: ti.template(), q, blocks: ti.template()):
 
 @ti.func
 def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb, beta,
-                  blocks: ti.template()):
-    """NNCG momentum of item q (bond_momentum, contact_momentum; a particle block: the bonds
-    whose first end is its particle, all among its bodies); then a bond item's snapshot for
-    the next sweep."""
+                  blocks: ti.template(), bodies: ti.template()):
+    """NNCG momentum of item q (a particle block: the bonds whose first end is its particle,
+    all among its bodies); then a bond item's snapshot for the next sweep. `bodies` (static)
+    1: the item moves its bodies too (bond_momentum, contact_momentum); 0: its impulses only
+    (bond_momentum_impulse, contact_momentum_impulse: body_momentum moves the bodies)."""
     if q < nb:
         if ti.static(blocks == 1):
             for e in range(bd.start[q], bd.start[q + 1]):
-                bond_momentum(p, bd, e, beta)
+                if ti.static(bodies == 1):
+                    bond_momentum(p, bd, e, beta)
+                else:
+                    bond_momentum_impulse(bd, e, beta)
         else:
-            bond_momentum(p, bd, q, beta)
+            if ti.static(bodies == 1):
+                bond_momentum(p, bd, q, beta)
+            else:
+                bond_momentum_impulse(bd, q, beta)
         bond_item_snapshot(bd, q, blocks)
     else:
-        contact_momentum(p, ct, q - nb, beta)
+        if ti.static(bodies == 1):
+            contact_momentum(p, ct, q - nb, beta)
+        else:
+            contact_momentum_impulse(ct, q - nb, beta)
 
 
 @ti.kernel
@@ -1186,10 +1267,12 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
     schedule's numbers. A block reads its own system's items of each colour only
     (cs.sys_start). The colours are swept forward: reversing them on every second sweep took
     more sweeps (seed-1 shear, 0.02 s: 91.6 mean sweeps against 70.3 plain, 56.8 against 28.5
-    with NNCG). `accel` (static) 1: NNCG as nlgs_serial's (the sweep's changes, summed over
-    the same chunks, give the momentum factor; the momentum is a pass over the colours, with
-    the bonds' snapshot for the next sweep (a contact's dR is kept by its visit); never after
-    the last sweep).
+    with NNCG). `accel` (static) 1 or 2: NNCG as nlgs_serial's (the sweep's changes, summed
+    over the same chunks, give the momentum factor; never after the last sweep), with the
+    bonds' snapshot for the next sweep (a contact's dR is kept by its visit). The momentum:
+    with 2, one pass over the system's items (their impulses) and one over its particles
+    (body_momentum), no colours; with 1 (session 37's) a pass over the colours, each item
+    moving its impulses and bodies together (resident_momentum).
     Per system: sweeps and residual into st.sys_sweeps / st.sys_residual, then the largest
     into st.sweeps / st.residual. `spread` loop iterations per system, the first `threads` of
     them its block's threads (resident_threads, resident_spread)."""
@@ -1208,12 +1291,19 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
         # this system's chunk partials in cs.partial: at most floor(earlier items / chunk)
         # + (earlier systems) chunks come before them
         base = (qb0 + qc0 - nb) // RESIDUAL_CHUNK + sy
-        if ti.static(accel == 1):
-            # the first sweep's snapshot of the bonds (a contact keeps its visit's dR)
+        q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
+        if ti.static(accel >= 1):
+            # the first sweep's snapshot of the bonds (a contact keeps its visit's dR), and
+            # with body_momentum of the bodies' velocities
             v = tid
             while v < n1:
                 bond_item_snapshot(bd, qb0 + v, blocks)
                 v += threads
+            if ti.static(accel == 2):
+                i = q0 + tid
+                while i < q1:
+                    body_sweep_start(p, cs, i)
+                    i += threads
             resident_barrier(threads)
         sweeps = 0
         residual = 0.0
@@ -1232,14 +1322,14 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
             if sweeps % check_every == 0 or sweeps >= max_sweeps:
                 check = 1
             sums = check
-            if ti.static(accel == 1):
+            if ti.static(accel >= 1):
                 sums = 1
             if sums == 1:
                 ch = tid
                 while ch < nchunks:
                     if check == 1:
                         cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, qc0)
-                    if ti.static(accel == 1):
+                    if ti.static(accel >= 1):
                         g2 = 0.0
                         for v in range(ch * RESIDUAL_CHUNK,
                                        ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
@@ -1258,7 +1348,7 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                             stop = 1
                         cs.sys_residual[sy] = res
                         cs.sys_stop[sy] = stop
-                    if ti.static(accel == 1):
+                    if ti.static(accel >= 1):
                         g2 = 0.0
                         for k in range(nchunks):
                             g2 += cs.gpartial[base + k]
@@ -1275,9 +1365,24 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                             s = cs.sys_start[c * nsys + sy] + tid
                             end = cs.sys_start[c * nsys + sy + 1]
                             while s < end:
-                                item_momentum(p, ct, bd, cs.order[s], nb, beta, blocks)
+                                item_momentum(p, ct, bd, cs.order[s], nb, beta, blocks, 1)
                                 s += threads
                             resident_barrier(threads)
+                if ti.static(accel == 2):
+                    if done == 0:
+                        # impulses and bodies apart (body_momentum), so in any order: no colours
+                        beta = cs.sys_beta[sy]
+                        v = tid
+                        while v < nitems:
+                            q = qb0 + v
+                            if v >= n1:
+                                q = qc0 + v - n1
+                            item_momentum(p, ct, bd, q, nb, beta, blocks, 0)
+                            v += threads
+                        i = q0 + tid
+                        while i < q1:
+                            body_momentum(p, cs, i, beta)
+                            i += threads
                 # every thread has read the decision before thread 0 may write the next one
                 resident_barrier(threads)
         if tid == 0:

@@ -365,9 +365,15 @@ class ColourSet:
     colours (bit set); item_colour; order: items sorted by colour; start: CSR per colour;
     change: per item (|dR|, |R|) of the last sweep, for the residual."""
 
-    def __init__(self, capacity: int, particle_capacity: int, systems: int = 1):
-        self.capacity, self.pool_args = capacity, (particle_capacity, systems)
+    def __init__(self, capacity: int, particle_capacity: int, systems: int = 1,
+                 body_momentum: bool = False):
+        self.capacity, self.pool_args = capacity, (particle_capacity, systems, body_momentum)
         self.systems = systems
+        # the resident schedule's NNCG (solver.body_momentum), per particle within one step's
+        # solve: the velocities at the start of the sweep, and the body part M^-1 H^T p of the
+        # momentum direction p (one slot each when unused: 96 B per particle in f64)
+        nb = particle_capacity if body_momentum else 1
+        self.sweep_v, self.sweep_w, self.dir_v, self.dir_w = _vec(nb), _vec(nb), _vec(nb), _vec(nb)
         self.mask = ti.field(ti.u32, shape=(particle_capacity, COLOUR_WORDS))
         self.item_colour, self.order = _int(capacity), _int(capacity)
         self.start, self.cursor = _int(MAX_COLOURS + 1), _int(MAX_COLOURS)

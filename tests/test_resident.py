@@ -131,12 +131,21 @@ def test_colour_lists_hold_each_system_apart(blocks, colouring):
     batch.close()
 
 
-@pytest.mark.parametrize("acceleration", ["none", "nncg"])
-def test_velocities_are_the_free_ones_plus_the_impulses(backend, tol, acceleration):
+@pytest.mark.parametrize("schedule, acceleration, momentum", [
+    ("resident", "none", ""), ("resident", "nncg", "bodies"), ("resident", "nncg", "items"),
+    ("serial", "nncg", "")])
+def test_velocities_are_the_free_ones_plus_the_impulses(backend, tol, monkeypatch, schedule,
+                                                       acceleration, momentum):
     """After every step, v = v_free + M^-1 H^T R over the step's contacts and bonds, in
-    translation and rotation: NNCG's momentum (solve_resident's pass over the colours) moves
-    each impulse and its bodies together, and the step ends on its impulses' own velocities."""
-    sim = pour(1, "resident", acceleration=acceleration)
+    translation and rotation: NNCG's momentum moves each impulse and its bodies by the same
+    amount (on the resident schedule by default a pass over the items for the impulses and
+    one over the particles for the bodies, solver.body_momentum, which never reads the items;
+    with TCD_RESIDENT_MOMENTUM=items and on the serial schedule each item moves its bodies),
+    and the step ends on its impulses' own velocities."""
+    monkeypatch.setenv("TCD_RESIDENT_MOMENTUM", momentum)
+    sim = pour(1, schedule, acceleration=acceleration)
+    assert sim._resident_accel() == {"": 2 * (schedule == "resident" and acceleration == "nncg"),
+                                     "bodies": 2, "items": 1}[momentum]
     sim.step(200)
     shear_wall(sim)
     n, r = sim.n, sim.radii()
@@ -201,6 +210,32 @@ def test_a_bad_gpu_block_size_is_refused(text):
     from tcd import solver
     with pytest.raises(ValueError, match="TCD_RESIDENT_THREADS=.*multiple of 32 from 32 to 1024"):
         solver.resident_gpu_threads(text)
+
+
+@pytest.mark.parametrize("text, accel", [("", 2), ("bodies", 2), ("items", 1)])
+def test_resident_momentum_is_read_from_the_environment(text, accel):
+    from tcd import solver
+    assert solver.resident_momentum(text) == accel
+
+
+def test_a_bad_resident_momentum_is_refused():
+    from tcd import solver
+    with pytest.raises(ValueError, match="TCD_RESIDENT_MOMENTUM='colours': expected one of "
+                                         "bodies, items"):
+        solver.resident_momentum("colours")
+
+
+def test_only_the_bodies_momentum_holds_the_per_particle_scratch(backend, monkeypatch):
+    """solver.body_momentum's four vectors per particle live in the colour set, sized to the
+    particles only where that momentum runs (96 B per particle in f64): elsewhere one slot."""
+    sizes = {}
+    for momentum, acceleration in (("bodies", "nncg"), ("items", "nncg"), ("bodies", "none")):
+        monkeypatch.setenv("TCD_RESIDENT_MOMENTUM", momentum)
+        sim = pour(1, "resident", acceleration=acceleration)
+        sim.step()
+        sizes[momentum, acceleration] = sim.colours.dir_v.shape[0]
+        sim.close()
+    assert sizes["bodies", "nncg"] >= 120 and sizes["items", "nncg"] == sizes["bodies", "none"] == 1
 
 
 @pytest.mark.parametrize("schedule, order, acceleration", [
