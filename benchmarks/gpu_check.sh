@@ -80,22 +80,28 @@ next)       # next session, first call (DEADLINE=565). Session 38 (H200) measure
             # Since then the momentum moves the bodies from their own velocities
             # (solver.body_momentum: one pass over the items and one over the particles, no
             # colours): the first stage gives its figure, the second session 38's (items) in
-            # the same call, the third a block of 512 threads; then the study; then the tests
-            # with what is left.
+            # the same call; then the kernel profile of the resident step (where its 13-20 ms
+            # per step besides the sweeps go: the profiler synchronises after each kernel);
+            # then the tests (the changed bit-for-bit test, the body momentum); then the study
+            # with what is left (its rate, or its end within 5 min).
     stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
-    if [ $? -ne 124 ]; then     # a time-out may be a barrier deadlock: then no resident figures
+    rc=$?
+    if [ $rc -ne 124 ]; then    # a time-out may be a barrier deadlock: then no resident figures
         stage shear_resident_items 45 env TCD_RESIDENT_MOMENTUM=items python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
-        stage shear_resident_512 45 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        TAIL=40 stage profile_resident 60 python3 benchmarks/profile.py shear --sample "$S" --time 0.01 --arch gpu --schedule resident --top 35
+    fi
+    TAIL=30 stage pytest_resident 170 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
+        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
+        -k "resident or exclusive_scan"
+    if [ $rc -ne 124 ]; then
         TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
         (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
     fi
-    TAIL=30 stage pytest_resident 300 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
-        --dist load -v -rfE --tb=short tests/test_resident.py tests/test_engine.py tests/test_bonds.py \
-        -k resident
     ;;
 next2)      # next session, second call if the machine is still warm (DEADLINE = what is left):
             # session 38's pour_resident (2600 spheres to 0.4 s) and 1e6 (--settle 0.3) stages
             # ran past their 60 and 200 s: shorter ones
+    stage shear_resident_512 45 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     stage shear_batch5_resident 60 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     stage scaling_1e6 150 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.1 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4

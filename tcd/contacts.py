@@ -2,7 +2,7 @@
 
 Broad phase: every particle is inserted into each grid cell its bounding box, enlarged by half
 the alert distance, overlaps (count, serial scan, scatter). The grid is hashed: a cell's linear
-index (z slowest) modulo a power-of-two table of buckets (about 8 per particle) picks its
+index (z slowest) modulo a power-of-two table of buckets (about 4 per particle) picks its
 bucket, and each entry keeps its cell's index, so a walk of a cell reads only the entries of
 that cell. Memory and the per-step clear and scan follow the particle count, not the (tall,
 mostly empty) pouring column; cells of one z slab map to consecutive buckets, so a dense bed
@@ -27,6 +27,8 @@ contact order canonical (i ascending, j ascending, walls last) and independent o
 scheduling. Warm start: each contact looks up its pair in the previous
 step's CSR list and starts from that impulse.
 """
+
+import math
 
 import taichi as ti
 
@@ -114,34 +116,42 @@ def grid_scatter(p, g, nb, half_alert: float) -> None:
     grid_walk(p, g, nb, half_alert, True)
 
 
-SCAN_CHUNK = 1024               # entries per thread of the parallel exclusive scan
+SCAN_MIN_CHUNK = 64             # entries per thread of the parallel exclusive scan, at least
 _scan_scratch = {"field": None, "size": 0}
 
 
+def scan_chunk(n: int) -> int:
+    """Entries per thread of the parallel exclusive scan of n entries: about sqrt(n), at least
+    SCAN_MIN_CHUNK, so that each thread's serial run and the one serial pass over the chunks
+    are both about sqrt(n) long (a fixed 1024, sessions 15-37, gave a GPU six threads of 1024
+    serial steps for the contacts' CSR of a 5857-sphere sample)."""
+    return max(SCAN_MIN_CHUNK, math.isqrt(max(n, 0)) + 1)
+
+
 @ti.kernel
-def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32,
+def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32, chunk: ti.i32,
                     partial: ti.template()) -> ti.i32:
     """start[k] = sum(count[:k]) for k <= n: chunk sums in parallel, their scan (serial, one
-    entry per SCAN_CHUNK), then each chunk's own scan in parallel (integers: exact, in any
+    entry per chunk), then each chunk's own scan in parallel (integers: exact, in any
     order)."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
-    for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+    for c in range((n + chunk - 1) // chunk):
         s = 0
-        for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+        for k in range(c * chunk, ti.min(n, (c + 1) * chunk)):
             s += count[k]
         partial[c] = s
     ti.loop_config(serialize=True)
     for _ in range(1):
         s = 0
-        for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+        for c in range((n + chunk - 1) // chunk):
             t = partial[c]
             partial[c] = s
             s += t
         start[n] = s
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
-    for c in range((n + SCAN_CHUNK - 1) // SCAN_CHUNK):
+    for c in range((n + chunk - 1) // chunk):
         s = partial[c]
-        for k in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+        for k in range(c * chunk, ti.min(n, (c + 1) * chunk)):
             start[k] = s
             s += count[k]
     return start[n]
@@ -149,14 +159,15 @@ def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32,
 
 def exclusive_scan(count, start, n: int) -> int:
     """start[k] = sum(count[:k]) for k <= n (in parallel, see _exclusive_scan); the total."""
-    need = n // SCAN_CHUNK + 2
+    chunk = scan_chunk(n)
+    need = n // chunk + 2
     if _scan_scratch["size"] < need:
         size = 64
         while size < need:
             size *= 2
         _scan_scratch["field"] = ti.field(ti.i32, shape=size)
         _scan_scratch["size"] = size
-    return _exclusive_scan(count, start, n, _scan_scratch["field"])
+    return _exclusive_scan(count, start, n, chunk, _scan_scratch["field"])
 
 
 def grid_scan(g) -> int:

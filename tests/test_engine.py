@@ -61,6 +61,26 @@ def test_grid_broad_phase_equals_brute_force(seed):
     assert found == sorted(found), "contacts are not in canonical (i, j) order"
 
 
+@pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 4097, 100_003])
+def test_exclusive_scan_equals_the_cumulative_sum(n):
+    """contacts.exclusive_scan (the CSR of the grid, the neighbour list and the contacts):
+    start[k] = sum(count[:k]) for k <= n and the total, for sizes around its chunks (about
+    sqrt(n) entries each, at least 64); entries past n untouched."""
+    import taichi as ti
+    from tcd import contacts
+    counts = np.random.default_rng(n).integers(0, 9, size=n + 5).astype(np.int32)
+    count, start = ti.field(ti.i32, shape=n + 5), ti.field(ti.i32, shape=n + 6)
+    count.from_numpy(counts)
+    start.from_numpy(np.full(n + 6, -7, np.int32))
+    total = contacts.exclusive_scan(count, start, n)
+    expected = np.concatenate([[0], np.cumsum(counts[:n])])
+    got = start.to_numpy()
+    assert total == expected[-1]
+    np.testing.assert_array_equal(got[:n + 1], expected)
+    assert np.all(got[n + 1:] == -7)
+    assert contacts.scan_chunk(n) >= 64 and contacts.scan_chunk(n) ** 2 > n
+
+
 @pytest.mark.parametrize("factor", [0.3, 1.0, 3.0])
 def test_broad_phase_equals_brute_force_for_any_cell_size(factor):
     """The cell size changes the cost only: small cells (many per sphere), the default and
