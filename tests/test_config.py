@@ -553,13 +553,17 @@ def test_the_scenario_bound_on_max_sweeps_is_the_engine_s():
 
 
 def test_gpu_study_is_the_study_on_the_resident_schedule():
-    """scenarios/leutner_shear_gpu.toml is leutner_shear.toml but for its name, description
-    and schedule: a change to the study's calibrated settings must reach both files."""
+    """scenarios/leutner_shear_gpu.toml is leutner_shear.toml but for its name, description,
+    schedule and warm start (the extrapolated one, 0.5: about a fifth fewer sweeps, the
+    starting point only): a change to the study's calibrated settings must reach both files."""
     study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml").model_dump()
     gpu = load_scenario(ROOT / "scenarios" / "leutner_shear_gpu.toml").model_dump()
     assert gpu["solver"]["schedule"] == "resident" != study["solver"]["schedule"]
+    assert gpu["solver"]["warm_start_extrapolation"] == 0.5
+    assert study["solver"]["warm_start_extrapolation"] == 0.0
     for d in (study, gpu):
         for key in ("name", "description", "source", "text"):
             d.pop(key)
         d["solver"].pop("schedule")
+        d["solver"].pop("warm_start_extrapolation")
     assert gpu == study
