@@ -88,6 +88,10 @@ next)       # next session, first call (DEADLINE=565). Session 38 (H200) measure
     rc=$?
     if [ $rc -ne 124 ]; then    # a time-out may be a barrier deadlock: then no resident figures
         stage shear_resident_items 45 env TCD_RESIDENT_MOMENTUM=items python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        # a cost model of the sweep (benchmarks/resident_cost_model.py: each colour waits for
+        # its busiest thread) gives 486 units per sweep with 256 threads, 351 with 512, 333
+        # with 1024 (the sum of each colour's largest item); a launch may fail for registers
+        stage shear_resident_512 45 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
         TAIL=40 stage profile_resident 60 python3 benchmarks/profile.py shear --sample "$S" --time 0.01 --arch gpu --schedule resident --top 35
     fi
     TAIL=30 stage pytest_resident 170 python3 -m pytest -p no:cacheprovider --arch gpu -n 8 \
@@ -101,7 +105,7 @@ next)       # next session, first call (DEADLINE=565). Session 38 (H200) measure
 next2)      # next session, second call if the machine is still warm (DEADLINE = what is left):
             # session 38's pour_resident (2600 spheres to 0.4 s) and 1e6 (--settle 0.3) stages
             # ran past their 60 and 200 s: shorter ones
-    stage shear_resident_512 45 env TCD_RESIDENT_THREADS=512 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+    stage shear_resident_1024 45 env TCD_RESIDENT_THREADS=1024 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     stage shear_batch5_resident 60 python3 -m tcd bench shear --sample "$S" --samples 5 --time 0.004 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
     stage scaling_1e6 150 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.1 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4
