@@ -52,7 +52,9 @@ def frame_of(sim) -> dict:
 class Progress:
     """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise. The first update
     gives the step the phase starts from (more than 0 after --resume): rates and the time left
-    count only the steps made since, so a resumed run shows its own speed."""
+    count only the steps made since, so a resumed run shows its own speed. A log line also
+    gives the rate and the mean sweeps per step since the line before (the steps' sweeps
+    given to count_sweeps): the rate since the start includes the compiling."""
 
     def __init__(self, enabled: bool, label: str, total: int, h: float):
         self.enabled, self.label, self.total, self.h = enabled, label, total, h
@@ -61,6 +63,13 @@ class Progress:
         self.first = None          # the step of the first update
         self.t0 = self.last = time.perf_counter()
         self.done = 0
+        self.last_step = 0         # the step of the last log line
+        self.sweeps, self.counted = 0, 0       # sweeps summed since then, over `counted` steps
+
+    def count_sweeps(self, sweeps: int) -> None:
+        """One step's sweeps, for the next log line's mean."""
+        self.sweeps += sweeps
+        self.counted += 1
 
     def update(self, step: int, sim_time: float, extra: str = "") -> None:
         if not self.enabled:
@@ -68,6 +77,7 @@ class Progress:
         now = time.perf_counter()
         if self.first is None:
             self.first, self.done, self.t0, self.last = step, step, now, now
+            self.last_step = step
             if self.tty:
                 from tqdm import tqdm
                 self.bar = tqdm(total=self.total, initial=step, desc=self.label, unit="step",
@@ -79,11 +89,20 @@ class Progress:
             self.bar.set_postfix_str(f"t={sim_time:.4f}s {extra}", refresh=False)
             return
         if now - self.last >= 10.0:
-            self.last = now
             rate = (step - self.first) / max(now - self.t0, 1e-9)
             left = (self.total - step) / rate if rate > 0 else float("nan")
+            recent = ""
+            if step > self.last_step and self.last_step > self.first:
+                recent = (f" ({(step - self.last_step) / max(now - self.last, 1e-9):.1f} over the "
+                          f"last {step - self.last_step} steps")
+                if self.counted:
+                    recent += f", {self.sweeps / self.counted:.1f} sweeps per step"
+                recent += ")"
+            self.last, self.last_step = now, step
+            self.sweeps, self.counted = 0, 0
             print(f"[tcd] {self.label}: step {step}/{self.total} t={sim_time:.4f} s "
-                  f"{rate:.1f} steps/s, at this rate at most {left / 60:.1f} min left {extra}", file=sys.stderr, flush=True)
+                  f"{rate:.1f} steps/s{recent}, at this rate at most {left / 60:.1f} min left {extra}",
+                  file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -346,6 +365,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                                     scenario_text=scenario.text, tcd_version=__version__)
                 every = scenario.output.snapshot_every
                 next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
+            bar.count_sweeps(rec.sweeps)
             if step_in_phase % 100 == 0:
                 bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
             last_ck = _checkpoint_if_due(interrupt, last_ck, scenario.output.checkpoint_every_s,
@@ -564,6 +584,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                     # sample at t > 0 does not write a burst of frames to catch up)
                     every = scn.output.snapshot_every
                     next_snapshot = (math.floor(sim.time / every + 1e-9) + 1) * every
+                bar.count_sweeps(rec.sweeps)
                 if step_in_phase % 100 == 0:
                     bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")
                 if stop:

@@ -453,6 +453,28 @@ def test_progress_after_a_resume_counts_only_the_new_steps(capsys, monkeypatch):
     assert "step 5100/15000" in line and "10.0 steps/s" in line and "16.5 min left" in line
 
 
+def test_progress_lines_give_the_rate_and_sweeps_since_the_line_before(capsys, monkeypatch):
+    """The rate since the start includes the compiling; from its second line on, a log line
+    also gives the rate and the mean sweeps per step since the line before: 100 steps in 30 s
+    at 10 then 30 sweeps."""
+    from tcd import runner
+    clock = iter([0.0, 0.0, 10.0, 40.0])
+    monkeypatch.setattr(runner.time, "perf_counter", lambda: next(clock))
+    bar = runner.Progress(True, "batch of 5 shear", 15000, 2e-4)
+    bar.update(0, 3.48)
+    for _ in range(100):
+        bar.count_sweeps(50)
+    bar.update(100, 3.50, "sweeps=50")
+    first = capsys.readouterr().err
+    assert "10.0 steps/s, at this rate" in first and "over the last" not in first
+    for k in range(100):
+        bar.count_sweeps(10 if k < 50 else 30)
+    bar.update(200, 3.52, "sweeps=30")
+    line = capsys.readouterr().err
+    assert "5.0 steps/s (3.3 over the last 100 steps, 20.0 sweeps per step)" in line
+    assert "at this rate at most 49.3 min left sweeps=30" in line
+
+
 def test_jobs_that_would_share_cores_between_partitioned_threads_are_refused(tmp_path, monkeypatch):
     """Two samples at once, two partitioned threads each, on two cores: refused before anything
     runs or is written, with the way out named."""
