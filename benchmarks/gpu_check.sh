@@ -100,6 +100,8 @@ next)       # next session, first call (DEADLINE=565). Session 38 (H200) measure
     if [ $rc -ne 124 ]; then
         TAIL=12 stage study_gpu 300 python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
         (cd /tmp && find study_gpu -name "*.json" -o -name "*.csv" | tar czf "$O/study_gpu.tgz" -T -)
+        # each sample's sweeps and residual per step, from the checkpoint the stop wrote
+        python3 benchmarks/study_series.py /tmp/study_gpu/batch_checkpoint.h5 > "$O/study_series.csv" 2>&1
     fi
     ;;
 next2)      # next session, second call if the machine is still warm (DEADLINE = what is left):
