@@ -755,10 +755,10 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     sweep's change g_k is used as a descent direction and the impulses get the momentum
     beta p_{k-1}, beta = |g_k|^2 / |g_{k-1}|^2, restarted (p = g) when beta > 1. The momentum
     is applied to the bodies at once (one extra pass over the items), so velocities always
-    equal v_free + M^-1 H^T R. (The resident schedule applies it to the bodies from their own
-    velocities instead, body_momentum: on this schedule's one thread per system that gained
-    nothing, 2.02e-5 against 1.95e-5 s per particle-step on the seed-1 shear, 0.02 s.) The step ends after a plain sweep, never after a momentum pass,
-    so the final impulses satisfy the contact law. `blocks` (static): 1 relaxes the bonds
+    equal v_free + M^-1 H^T R. (The resident schedule moves the bodies from their own
+    velocities instead, body_momentum; tried here, that gained nothing: 2.02e-5 against
+    1.95e-5 s per particle-step on the seed-1 shear, 0.02 s.) The step ends after a plain
+    sweep, never after a momentum pass, so the final impulses satisfy the contact law. `blocks` (static): 1 relaxes the bonds
     particle by particle (solve_particle_bonds), 0 bond by bond.
 
     Batched systems (p.systems > 1) share no body, so the outer loop over systems is parallel
