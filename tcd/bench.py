@@ -196,6 +196,7 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
         "convergence": sim.settings.convergence,
         "acceleration": sim.acceleration_used,
+        **({"resident": sim.resident_block} if sim.resident_block else {}),
         "loop_wall_s": loop_s, "compile_wall_s": compile_s,
         "memory_bytes_per_particle": sim.memory_bytes() / particles,
     }
@@ -335,6 +336,7 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
         "warm_start_extrapolation": sim.settings.warm_start_extrapolation,
         "convergence": sim.settings.convergence,
         "acceleration": sim.acceleration_used,
+        **({"resident": sim.resident_block} if sim.resident_block else {}),
         "renumber": bool(renumber),
         **({"threads": threads} if sim.schedule == "partitioned" else {}), "loop_wall_s": loop_s,
         "compile_wall_s": compile_s, "memory_bytes_per_particle": sim.memory_bytes() / particles,

@@ -899,6 +899,15 @@ class Simulation:
         return "none" if self.schedule == "coloured" else self.settings.acceleration
 
     @property
+    def resident_block(self) -> dict:
+        """The resident schedule's launch: threads per system (1 on the CPU) and its NNCG
+        momentum ("bodies", "items" or "none"; solver.resident_momentum); {} on the others."""
+        if self.schedule != "resident":
+            return {}
+        return {"threads": self._resident_shape[0],
+                "momentum": {2: "bodies", 1: "items", 0: "none"}[self._resident_accel()]}
+
+    @property
     def renumbered(self) -> bool:
         """True when some particle's index differs from its sample_index."""
         return not np.array_equal(self.sample_index, self._identity_index())

@@ -247,4 +247,17 @@ def test_benchmarks_report_the_sweep_order_and_momentum_each_schedule_runs(
     says, and the coloured one is always plain: `tcd bench` reports what ran."""
     sim = Simulation([0.001], [[0, 0, 0.01]], settings=SolverSettings(schedule=schedule))
     assert (sim.sweep_order_used, sim.acceleration_used) == (order, acceleration)
+    assert sim.resident_block == ({"threads": 1 if backend[0] == "cpu" else 256,
+                                   "momentum": "bodies"} if schedule == "resident" else {})
+    sim.close()
+
+
+@pytest.mark.parametrize("momentum, acceleration, reported", [
+    ("items", "nncg", "items"), ("", "none", "none")])
+def test_the_resident_block_is_reported_as_run(backend, monkeypatch, momentum, acceleration,
+                                               reported):
+    monkeypatch.setenv("TCD_RESIDENT_MOMENTUM", momentum)
+    sim = Simulation([0.001], [[0, 0, 0.01]],
+                     settings=SolverSettings(schedule="resident", acceleration=acceleration))
+    assert sim.resident_block["momentum"] == reported
     sim.close()
