@@ -33,7 +33,8 @@ import os
 import taichi as ti
 
 from . import backend, contacts, laws
-from .state import COLOUR_WORDS, MAX_COLOURS, RESIDUAL_CHUNK, WALL_CHUNK
+from .state import (COLOUR_WORDS, MAX_COLOURS, MOMENTUM_CHUNK, MOMENTUM_GROUPS, RESIDUAL_CHUNK,
+                    WALL_CHUNK)
 
 INTACT, BROKEN_TENSION, BROKEN_SHEAR = 0, 1, 2
 SYSTEM_SPREAD = 1024         # loop iterations per batched system (see nlgs_serial)
@@ -1267,8 +1268,9 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
     schedule's numbers. A block reads its own system's items of each colour only
     (cs.sys_start). The colours are swept forward: reversing them on every second sweep took
     more sweeps (seed-1 shear, 0.02 s: 91.6 mean sweeps against 70.3 plain, 56.8 against 28.5
-    with NNCG). `accel` (static) 1 or 2: NNCG as nlgs_serial's (the sweep's changes, summed
-    over the same chunks, give the momentum factor; never after the last sweep), with the
+    with NNCG). `accel` (static) 1 or 2: NNCG as nlgs_serial's (the sweep's changes |dR|^2,
+    summed by chunks of MOMENTUM_CHUNK items, then groups of chunks, each in order, give the
+    momentum factor; never after the last sweep), with the
     bonds' snapshot for the next sweep (a contact's dR is kept by its visit). The momentum:
     with 2, one pass over the system's items (their impulses) and one over its particles
     (body_momentum), no colours; with 1 (session 37's) a pass over the colours, each item
@@ -1291,6 +1293,10 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
         # this system's chunk partials in cs.partial: at most floor(earlier items / chunk)
         # + (earlier systems) chunks come before them
         base = (qb0 + qc0 - nb) // RESIDUAL_CHUNK + sy
+        # the same for the momentum's chunks (cs.gpartial)
+        ngchunks = (nitems + MOMENTUM_CHUNK - 1) // MOMENTUM_CHUNK
+        gbase = (qb0 + qc0 - nb) // MOMENTUM_CHUNK + sy
+        per_group = (ngchunks + MOMENTUM_GROUPS - 1) // MOMENTUM_GROUPS
         q0, q1 = p.sys_start[sy], p.sys_start[sy + 1]
         if ti.static(accel >= 1):
             # the first sweep's snapshot of the bonds (a contact keeps its visit's dR), and
@@ -1325,20 +1331,33 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
             if ti.static(accel >= 1):
                 sums = 1
             if sums == 1:
-                ch = tid
-                while ch < nchunks:
-                    if check == 1:
+                if check == 1:
+                    ch = tid
+                    while ch < nchunks:
                         cs.partial[base + ch] = change_chunk(cs, ch, nitems, n1, qb0, qc0)
-                    if ti.static(accel >= 1):
+                        ch += threads
+                if ti.static(accel >= 1):
+                    # |dR|^2 by chunks of MOMENTUM_CHUNK items, then MOMENTUM_GROUPS groups of
+                    # consecutive chunks, each summed in order (then thread 0 sums the groups)
+                    ch = tid
+                    while ch < ngchunks:
                         g2 = 0.0
-                        for v in range(ch * RESIDUAL_CHUNK,
-                                       ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
+                        for v in range(ch * MOMENTUM_CHUNK,
+                                       ti.min(nitems, (ch + 1) * MOMENTUM_CHUNK)):
                             q = qb0 + v
                             if v >= n1:
                                 q = qc0 + v - n1
                             g2 += item_sweep_change(ct, bd, cs, q, nb, blocks)
-                        cs.gpartial[base + ch] = g2
-                    ch += threads
+                        cs.gpartial[gbase + ch] = g2
+                        ch += threads
+                    resident_barrier(threads)
+                    grp = tid
+                    while grp < MOMENTUM_GROUPS:
+                        g2 = 0.0
+                        for k in range(grp * per_group, ti.min(ngchunks, (grp + 1) * per_group)):
+                            g2 += cs.gpartial[gbase + k]
+                        cs.ggroup[sy * MOMENTUM_GROUPS + grp] = g2
+                        grp += threads
                 resident_barrier(threads)
                 if tid == 0:
                     if check == 1:
@@ -1350,8 +1369,8 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                         cs.sys_stop[sy] = stop
                     if ti.static(accel >= 1):
                         g2 = 0.0
-                        for k in range(nchunks):
-                            g2 += cs.gpartial[base + k]
+                        for grp in range(MOMENTUM_GROUPS):
+                            g2 += cs.ggroup[sy * MOMENTUM_GROUPS + grp]
                         cs.sys_beta[sy] = nncg_beta(g2, g2_prev, sweeps)
                         g2_prev = g2
                 resident_barrier(threads)

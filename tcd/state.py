@@ -27,6 +27,11 @@ SLAB_BINS = 4096            # its work histogram across the sample, cut into sla
 COLOUR_WORDS = 8            # 32-bit words of the per-body colour mask
 MAX_COLOURS = 32 * COLOUR_WORDS
 RESIDUAL_CHUNK = 256       # items per partial sum of the coloured schedule's residual
+# the resident schedule's NNCG sum |dR|^2: items per partial sum, and the groups of partials
+# summed before the last sum (every thread of a GPU block busy: 256-item chunks left 37 of a
+# block's 256 threads working on the seed-1 shear's 9300 items)
+MOMENTUM_CHUNK = 32
+MOMENTUM_GROUPS = 32
 WALL_CHUNK = 4096          # contacts per partial sum of the wall forces
 
 
@@ -398,9 +403,10 @@ class ColourSet:
         # solver.solve_resident: each system's last residual and its decision to stop
         self.sys_residual = ti.field(backend.real(), shape=MAX_SYSTEMS)
         self.sys_stop = _int(MAX_SYSTEMS)
-        # solver.solve_resident with NNCG: per chunk of items the sweep's sum |dR|^2, per
-        # system the momentum factor
-        self.gpartial = ti.field(backend.real(), shape=capacity // RESIDUAL_CHUNK + MAX_SYSTEMS + 2)
+        # solver.solve_resident with NNCG: per chunk of MOMENTUM_CHUNK items the sweep's sum
+        # |dR|^2, per system its MOMENTUM_GROUPS group sums, and its momentum factor
+        self.gpartial = ti.field(backend.real(), shape=capacity // MOMENTUM_CHUNK + MAX_SYSTEMS + 2)
+        self.ggroup = ti.field(backend.real(), shape=MAX_SYSTEMS * MOMENTUM_GROUPS)
         self.sys_beta = ti.field(backend.real(), shape=MAX_SYSTEMS)
         # the same for the 'Quad ' check's six sums (solver.quad_check_colours)
         self.qpartial = ti.Vector.field(6, backend.real(), shape=capacity // RESIDUAL_CHUNK + 2)
