@@ -285,11 +285,11 @@ def open_unit(p: ti.template(), ct: ti.template(), bd: ti.template(), pt: ti.tem
     for m in range(pt.mstart[k], pt.mstart[k + 1]):
         b = pt.morder[m]
         if ti.static(accel == 1):
-            sk.bond_momentum(p, bd, b, beta)
+            sk.bond_momentum(p, bd, b, beta, 1)
         bd.acc_d[b] = bd.impulse[b]
     if ti.static(accel == 1):
         for m in range(pt.cstart[k], pt.cstart[k + 1]):
-            sk.contact_momentum(p, ct, pt.corder[m], beta)
+            sk.contact_momentum(p, ct, pt.corder[m], beta, 1)
 
 
 @ti.func

@@ -904,8 +904,9 @@ class Simulation:
         momentum ("bodies", "items" or "none"; solver.resident_momentum); {} on the others."""
         if self.schedule != "resident":
             return {}
+        names = {accel: name for name, accel in sk.RESIDENT_MOMENTUM.items()}
         return {"threads": self._resident_shape[0],
-                "momentum": {2: "bodies", 1: "items", 0: "none"}[self._resident_accel()]}
+                "momentum": names.get(self._resident_accel(), "none")}
 
     @property
     def renumbered(self) -> bool:

@@ -626,26 +626,6 @@ def nncg_beta(g2, g2_prev, sweeps):
 
 
 @ti.func
-def bond_momentum_impulse(bd: ti.template(), b, beta):
-    """bond_momentum on the impulse and direction only: its bodies get theirs from
-    body_momentum."""
-    if bd.state[b] == INTACT:
-        pb = bd.acc_p[b]
-        if beta > 0.0:
-            bd.impulse[b] += beta * pb
-        bd.acc_p[b] = beta * pb + bd.acc_d[b]
-
-
-@ti.func
-def contact_momentum_impulse(ct: ti.template(), k, beta):
-    """contact_momentum on the impulse and direction only (body_momentum moves the bodies)."""
-    pk = ct.acc_p[k]
-    if beta > 0.0 and ct.wnn[k] > 0.0:
-        ct.impulse[k] += beta * pk
-    ct.acc_p[k] = beta * pk + ct.acc_d[k]
-
-
-@ti.func
 def body_sweep_start(p: ti.template(), cs: ti.template(), i):
     """Particle i's velocities at the start of a sweep, for body_momentum."""
     cs.sweep_v[i] = p.v[i]
@@ -678,20 +658,23 @@ def body_momentum(p: ti.template(), cs: ti.template(), i, beta):
 
 
 @ti.func
-def bond_momentum(p: ti.template(), bd: ti.template(), b, beta):
-    """NNCG momentum of intact bond b: R += beta p (applied to its bodies), p = beta p + dR."""
+def bond_momentum(p: ti.template(), bd: ti.template(), b, beta, bodies: ti.template()):
+    """NNCG momentum of intact bond b: R += beta p, p = beta p + dR; `bodies` (static) 1 applies
+    it to its bodies too, 0 leaves them to body_momentum."""
     if bd.state[b] == INTACT:
         pb = bd.acc_p[b]
         if beta > 0.0:
             dr = beta * pb
             bd.impulse[b] += dr
-            apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+            if ti.static(bodies == 1):
+                apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
         bd.acc_p[b] = beta * pb + bd.acc_d[b]
 
 
 @ti.func
-def contact_momentum(p: ti.template(), ct: ti.template(), k, beta):
-    """NNCG momentum of contact k (none on a pair of kinematic bodies)."""
+def contact_momentum(p: ti.template(), ct: ti.template(), k, beta, bodies: ti.template()):
+    """NNCG momentum of contact k (none on a pair of kinematic bodies); `bodies` as
+    bond_momentum's."""
     pk = ct.acc_p[k]
     moves = 1
     if ti.static(OPEN_SKIP):
@@ -701,7 +684,8 @@ def contact_momentum(p: ti.template(), ct: ti.template(), k, beta):
     if beta > 0.0 and ct.wnn[k] > 0.0 and moves == 1:
         dr = beta * pk
         ct.impulse[k] += dr
-        apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
+        if ti.static(bodies == 1):
+            apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], dr)
     ct.acc_p[k] = beta * pk + ct.acc_d[k]
 
 
@@ -759,8 +743,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
     equal v_free + M^-1 H^T R. (The resident schedule moves the bodies from their own
     velocities instead, body_momentum; tried here, that gained nothing: 2.02e-5 against
     1.95e-5 s per particle-step on the seed-1 shear, 0.02 s.) The step ends after a plain
-    sweep, never after a momentum pass, so the final impulses satisfy the contact law. `blocks` (static): 1 relaxes the bonds
-    particle by particle (solve_particle_bonds), 0 bond by bond.
+    sweep, never after a momentum pass, so the final impulses satisfy the contact law.
+    `blocks` (static): 1 relaxes the bonds particle by particle (solve_particle_bonds), 0 bond
+    by bond.
 
     Batched systems (p.systems > 1) share no body, so the outer loop over systems is parallel
     (one thread per system) and each system sweeps its own contiguous particles, bonds and
@@ -843,9 +828,9 @@ def nlgs_serial(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.t
                     if done == 0:
                         beta = nncg_beta(g2, g2_prev, sweeps)
                         for b in range(b0, b1):
-                            bond_momentum(p, bd, b, beta)
+                            bond_momentum(p, bd, b, beta, 1)
                         for k in range(c0, c1):
-                            contact_momentum(p, ct, k, beta)
+                            contact_momentum(p, ct, k, beta, 1)
                     g2_prev = g2
             st.sys_sweeps[sy] = sweeps
             st.sys_residual[sy] = residual
@@ -979,9 +964,7 @@ def colour_greedy(n: ti.i32, p: ti.template(), ct: ti.template(), bd: ti.templat
                 cs.sys_start[c * nsys + sy] = cs.cursor[c]
             qb0, qb1, qc0, qc1 = system_items(p, ct, bd, sy, blocks)
             for v in range(qb1 - qb0 + qc1 - qc0):
-                q = qb0 + v
-                if v >= qb1 - qb0:
-                    q = qc0 + v - (qb1 - qb0)
+                q = listed_item(v, qb1 - qb0, qb0, qc0)
                 c = cs.item_colour[q]
                 if c >= 0:
                     cs.order[cs.cursor[c]] = q
@@ -1057,6 +1040,16 @@ def solve_item(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.te
 
 
 @ti.func
+def listed_item(v, n1, qb0, qc0):
+    """The v-th item of a list of bond items qb0 .. qb0 + n1 - 1, then contacts from item qc0
+    (a system's items: system_items)."""
+    q = qb0 + v
+    if v >= n1:
+        q = qc0 + v - n1
+    return q
+
+
+@ti.func
 def change_chunk(cs: ti.template(), ch, nitems, n1, qb0, qc0):
     """(sum |dR|, sum |R|) of the last sweep over chunk ch (RESIDUAL_CHUNK items, in order) of
     a list of `nitems` items: the v-th is item qb0 + v for v < n1, else item qc0 + v - n1 (a
@@ -1064,9 +1057,7 @@ def change_chunk(cs: ti.template(), ch, nitems, n1, qb0, qc0):
     d = 0.0
     r = 0.0
     for v in range(ch * RESIDUAL_CHUNK, ti.min(nitems, (ch + 1) * RESIDUAL_CHUNK)):
-        q = qb0 + v
-        if v >= n1:
-            q = qc0 + v - n1
+        q = listed_item(v, n1, qb0, qc0)
         d += cs.change[q][0]
         r += cs.change[q][1]
     return ti.Vector([d, r])
@@ -1233,26 +1224,16 @@ def item_momentum(p: ti.template(), ct: ti.template(), bd: ti.template(), q, nb,
                   blocks: ti.template(), bodies: ti.template()):
     """NNCG momentum of item q (a particle block: the bonds whose first end is its particle,
     all among its bodies); then a bond item's snapshot for the next sweep. `bodies` (static)
-    1: the item moves its bodies too (bond_momentum, contact_momentum); 0: its impulses only
-    (bond_momentum_impulse, contact_momentum_impulse: body_momentum moves the bodies)."""
+    1: the item moves its bodies too; 0: its impulses only (body_momentum moves the bodies)."""
     if q < nb:
         if ti.static(blocks == 1):
             for e in range(bd.start[q], bd.start[q + 1]):
-                if ti.static(bodies == 1):
-                    bond_momentum(p, bd, e, beta)
-                else:
-                    bond_momentum_impulse(bd, e, beta)
+                bond_momentum(p, bd, e, beta, bodies)
         else:
-            if ti.static(bodies == 1):
-                bond_momentum(p, bd, q, beta)
-            else:
-                bond_momentum_impulse(bd, q, beta)
+            bond_momentum(p, bd, q, beta, bodies)
         bond_item_snapshot(bd, q, blocks)
     else:
-        if ti.static(bodies == 1):
-            contact_momentum(p, ct, q - nb, beta)
-        else:
-            contact_momentum_impulse(ct, q - nb, beta)
+        contact_momentum(p, ct, q - nb, beta, bodies)
 
 
 @ti.kernel
@@ -1344,9 +1325,7 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                         g2 = 0.0
                         for v in range(ch * MOMENTUM_CHUNK,
                                        ti.min(nitems, (ch + 1) * MOMENTUM_CHUNK)):
-                            q = qb0 + v
-                            if v >= n1:
-                                q = qc0 + v - n1
+                            q = listed_item(v, n1, qb0, qc0)
                             g2 += item_sweep_change(ct, bd, cs, q, nb, blocks)
                         cs.gpartial[gbase + ch] = g2
                         ch += threads
@@ -1393,10 +1372,8 @@ def solve_resident(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: t
                         beta = cs.sys_beta[sy]
                         v = tid
                         while v < nitems:
-                            q = qb0 + v
-                            if v >= n1:
-                                q = qc0 + v - n1
-                            item_momentum(p, ct, bd, q, nb, beta, blocks, 0)
+                            item_momentum(p, ct, bd, listed_item(v, n1, qb0, qc0), nb, beta,
+                                          blocks, 0)
                             v += threads
                         i = q0 + tid
                         while i < q1:
