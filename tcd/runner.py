@@ -319,7 +319,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                    for seed in seeds]
     for res in results:
         _record_loop_mode(res)
-    views = [SystemView(batch, k) for k in range(len(seeds))]
+    views = SystemView.all(batch)
     if not resume:
         for seed, view, res in zip(seeds, views, results):
             k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
@@ -350,19 +350,13 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             rec = batch.step()
             step_in_phase += 1
             if step_in_phase % scenario.output.series_every == 0 or step_in_phase == steps:
-                # each field read once for all the systems (a read waits for a GPU), then each
-                # system's numbers as its view gives them (solver_stats, contact_count,
-                # kinetic_energy: the same slices, the same numbers)
-                sweeps_all, residual_all = batch.system_stats()
-                v_all, w_all, r_all = batch.velocities(), batch.angular_velocities(), batch.radii()
-                c_start = batch.contacts.start.to_numpy()
+                # each view's numbers as a run of its system alone records them; the views
+                # share one read of each field per step (SystemView.all: a read waits for a GPU)
                 for k, (seed, view) in enumerate(zip(seeds, views)):
-                    sl = view.slice
-                    row = {"time": batch.time, "step": batch.step_index,
-                           "sweeps": int(sweeps_all[k]), "residual": float(residual_all[k]),
-                           "contacts": int(c_start[sl.stop]) - int(c_start[sl.start]),
-                           "kinetic_energy": obs.kinetic_energy(v_all[sl], w_all[sl], r_all[sl],
-                                                                batch.density)}
+                    sweeps, residual = view.solver_stats()
+                    row = {"time": batch.time, "step": batch.step_index, "sweeps": sweeps,
+                           "residual": residual, "contacts": view.contact_count(),
+                           "kinetic_energy": view.kinetic_energy()}
                     row.update(protos[seed].record(view, phases[k]))
                     for key, v in row.items():
                         series[k].setdefault(key, []).append(v)

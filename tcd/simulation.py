@@ -1258,17 +1258,46 @@ class Simulation:
                              "sphere fits inside it")
 
 
+class BatchReads:
+    """A batch's arrays read once per step for all its SystemViews: on a GPU each read waits for
+    the device and copies a whole field, and five views each reading each field (positions,
+    velocities, bond states, ...) cost 15 such copies per recorded step instead of 4-7. Keyed
+    on the batch's step: the views read between steps, and the batch steps."""
+
+    def __init__(self, batch: Simulation):
+        self.batch = batch
+        self._step, self._arrays = None, {}
+        self.reads = 0          # whole-batch reads made (a count for tests)
+
+    def __call__(self, key: str, read):
+        if self._step != self.batch.step_index:
+            self._step, self._arrays = self.batch.step_index, {}
+        if key not in self._arrays:
+            self._arrays[key] = read()
+            self.reads += 1
+        return self._arrays[key]
+
+
 class SystemView:
     """System s of a batch seen through the part of the Simulation interface that the protocols
     and the runner read (clock, walls and their forces, particles, bonds, state): the numbers of
-    that system alone, with its own particle and wall indices. Reads only; the batch steps."""
+    that system alone, with its own particle and wall indices. Reads only; the batch steps.
+    Views made by `SystemView.all` share one BatchReads: each field is read once per step for
+    all of them, and each view takes its slice (a copy: a caller may change it)."""
 
-    def __init__(self, batch: Simulation, s: int):
+    def __init__(self, batch: Simulation, s: int, reads: BatchReads | None = None):
         self.batch, self.s = batch, s
         self.slice = batch.system_slice(s)
         self.n = self.slice.stop - self.slice.start
         self.wall_index = [k for k, w in enumerate(batch.walls) if w.system == s]
         self._split, self._split_step = None, None
+        self.reads = BatchReads(batch) if reads is None else reads
+
+    @classmethod
+    def all(cls, batch: Simulation) -> list:
+        """A view of each system of the batch, sharing one BatchReads."""
+        reads = BatchReads(batch)
+        return [cls(batch, s, reads) for s in range(batch.systems)]
 
     time = property(lambda self: self.batch.time)
     step_index = property(lambda self: self.batch.step_index)
@@ -1282,27 +1311,30 @@ class SystemView:
         return [dataclasses.replace(self.batch.walls[k], system=-1) for k in self.wall_index]
 
     def positions(self):
-        return self.batch.positions()[self.slice]
+        return self.reads("x", self.batch.positions)[self.slice].copy()
 
     def velocities(self):
-        return self.batch.velocities()[self.slice]
+        return self.reads("v", self.batch.velocities)[self.slice].copy()
 
     def angular_velocities(self):
-        return self.batch.angular_velocities()[self.slice]
+        return self.reads("w", self.batch.angular_velocities)[self.slice].copy()
 
     def radii(self):
-        return self.batch.radii()[self.slice]
+        return self.reads("radius", self.batch.radii)[self.slice].copy()
 
     def wall_force(self, k: int) -> np.ndarray:
-        return self.batch.wall_force(self.wall_index[k])
+        force = self.reads("wall_force",
+                           lambda: self.batch.wall_fields.force.to_numpy().astype(float))
+        return force[self.wall_index[k]].copy()
 
     def _bond_range(self) -> tuple[int, int]:
-        start = self.batch.bonds.start
+        start = self.reads("bond_start", self.batch.bonds.start.to_numpy)
         return int(start[self.slice.start]), int(start[self.slice.stop])
 
     def bonds_state_counts(self) -> tuple:
         b0, b1 = self._bond_range()
-        s = get(self.batch.bonds.state, b1)[b0:]
+        bd = self.batch.bonds
+        s = self.reads("bond_state", lambda: get(bd.state, int(bd.total[None])))[b0:b1]
         return (int(np.count_nonzero(s == sk.INTACT)), int(np.count_nonzero(s == sk.BROKEN_TENSION)),
                 int(np.count_nonzero(s == sk.BROKEN_SHEAR)))
 
@@ -1310,11 +1342,11 @@ class SystemView:
         return self.bonds_state_counts()[0]
 
     def contact_count(self) -> int:
-        start = self.batch.contacts.start
+        start = self.reads("contact_start", self.batch.contacts.start.to_numpy)
         return int(start[self.slice.stop]) - int(start[self.slice.start])
 
     def solver_stats(self) -> tuple[int, float]:
-        sweeps, residual = self.batch.system_stats()
+        sweeps, residual = self.reads("solver_stats", self.batch.system_stats)
         return int(sweeps[self.s]), float(residual[self.s])
 
     def kinetic_energy(self) -> float:

@@ -77,6 +77,38 @@ def test_split_gives_back_each_system(pair):
             np.testing.assert_array_equal(part[key], value, err_msg=key)
 
 
+def test_system_views_read_each_field_once_per_step(pair):
+    """The views of `tcd run --batch` (SystemView.all) give each system's numbers as it has
+    them alone, and read each of the batch's fields once per step for all the views."""
+    from tcd.simulation import SystemView
+    a, b = pair
+    batch = Simulation.batch([a, b])
+    views = SystemView.all(batch)
+    for _ in range(2):
+        batch.step()
+        recs = [o.step() for o in (a, b)]
+        reads = views[0].reads
+        assert all(view.reads is reads for view in views)
+        counts = [reads.reads]
+        for view, o, rec in zip(views, (a, b), recs):
+            assert view.solver_stats() == (rec.sweeps, rec.residual)
+            assert view.contact_count() == rec.contacts
+            assert view.bonds_state_counts() == o.bonds_state_counts()
+            for m in range(len(o.walls)):
+                np.testing.assert_array_equal(view.wall_force(m), o.wall_force(m))
+            for name in ("positions", "velocities", "angular_velocities", "radii"):
+                np.testing.assert_array_equal(getattr(view, name)(), getattr(o, name)(),
+                                              err_msg=name)
+            assert view.kinetic_energy() == o.kinetic_energy()
+            counts.append(reads.reads)
+        # x, v, w, radius, wall forces, bond starts, bond states, contact starts, solver stats:
+        # read once each by the first view in this step, and not again by the second
+        assert np.diff(counts).tolist() == [9, 0]
+    # a slice handed out is the caller's: changing it leaves the next view's read alone
+    views[0].positions()[:] = 0.0
+    np.testing.assert_array_equal(views[0].positions(), a.positions())
+
+
 @pytest.mark.f64_only   # compares two runs of the same code: once, in f64, is enough
 def test_batch_carries_the_extrapolated_warm_start(backend):
     """With warm_start_extrapolation the previous impulses of every bond and contact travel
