@@ -376,7 +376,8 @@ class ShearStage(_Model):
     "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index).
     `ring_edges`: where a ring ends, "rim" (its inner circle: a grain beyond the ring's end
     touches it only there) or "extended" (the ring's wall reaches one grain radius further:
-    the geometry of sessions 1-31, which the shipped study's scenarios keep; walls.py)."""
+    the geometry of sessions 1-31, which the calibration scenarios keep; the study's use "rim";
+    walls.py)."""
     kind: Literal["shear"]
     displacement_mm: float = Field(2.5, gt=0)
     velocity_mm_per_min: float = Field(50.0, gt=0)

@@ -1,6 +1,7 @@
 """Field containers: particles, walls, the broad-phase grid, contacts and bonds.
 
-Struct-of-arrays Taichi fields grouped in small data-oriented classes, passed to kernels as
+Taichi fields grouped in small data-oriented classes (the solver's per-item records laid out
+array-of-structs on the CPU, struct-of-arrays on the GPU: aos_layout), passed to kernels as
 template arguments. Sizes that change between runs (particle count, grid shape, totals) are
 runtime scalars inside the containers, and capacities come in power-of-two classes: containers
 are recycled through a pool (`acquire` / `release`), so a new simulation of a similar size reuses

@@ -17,8 +17,8 @@ Geometry conventions (SI units):
     sphere touches it where its distance to that circle is below r, along the line from its
     centre to the circle's nearest point (a ring of the Leutner box ends at its rim);
   - "extended": the shell reaches r beyond each end, with the radial gap and normal (the
-    geometry of sessions 1-31: the shipped study's scenarios keep it, `ring_edges`, so that
-    their results stay reproducible; it adds a phantom wall of up to one grain radius on
+    geometry of sessions 1-31: the calibration scenarios keep it, `ring_edges`, so that
+    their results stay reproducible (the study's scenarios use "rim" since session 32); it adds a phantom wall of up to one grain radius on
     either side of the shear box's gap).
 """
 from __future__ import annotations
