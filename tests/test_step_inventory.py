@@ -1,0 +1,30 @@
+"""benchmarks/step_inventory.py counts what a step asks of the host: kernel launches by kernel,
+field reads and writes by the line of tcd/ that made them, over the steps after the two that
+compile; and it leaves Taichi and Simulation as it found them."""
+from taichi.lang import kernel_impl
+from taichi.lang.field import ScalarField
+from taichi.lang.matrix import MatrixField
+
+from tcd import simulation
+
+
+def test_inventory_counts_one_solver_launch_per_step_and_restores_taichi(benchmark_script, capsys,
+                                                                        backend):
+    inventory = benchmark_script("step_inventory")
+    before = [kernel_impl.Kernel.__call__, simulation.Simulation._step,
+              ScalarField.__dict__["__getitem__"], MatrixField.__dict__["to_numpy"]]
+    arch, precision = backend
+    table = inventory.main(["pour", "--particles", "300", "--time", "0.002", "--schedule",
+                            "serial", "--arch", arch, "--precision", precision, "--json"])
+    assert table["steps"] == 10 and table["steps_counted"] == 8
+    # the serial schedule: all sweeps of a step in one launch, one predictor, one integration
+    for kernel in ("nlgs_serial", "predict", "integrate", "wall_forces"):
+        assert table["launches"][kernel] == 1.0, kernel
+    assert table["launches_per_step"] == sum(table["launches"].values()) > 5
+    # every read is attributed to a line of tcd/ (the step's totals and records)
+    assert table["reads_per_step"] >= 3
+    assert all(k.split(" at ")[-1].split(":")[0].endswith(".py") for k in table["reads"])
+    assert '"launches_per_step"' in capsys.readouterr().out
+    after = [kernel_impl.Kernel.__call__, simulation.Simulation._step,
+             ScalarField.__dict__["__getitem__"], MatrixField.__dict__["to_numpy"]]
+    assert after == before
