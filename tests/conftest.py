@@ -183,8 +183,9 @@ def pytest_configure(config):
         os.environ[ADVANCED_OPTIMIZATION_ENV] = "0"
     config.addinivalue_line(
         "markers", "f64_only: the test compares two runs of the same code (a buffer refit, a "
-        "launch split, a neighbour skin) bit for bit, which does not depend on the precision: "
-        "the f32 pass (test_precision_f32.py) skips it")
+        "launch split, a neighbour skin) bit for bit, which does not depend on the precision, "
+        "or runs a tool that works in f64 itself (the renderer's reference image): the f32 "
+        "pass (test_precision_f32.py, --precision f32) skips it")
 
 
 def pytest_collection_modifyitems(session, config, items):

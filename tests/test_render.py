@@ -13,16 +13,17 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from tcd import backend, render
+from tcd import render
 from tcd.render import Camera
 
 W, H, PX = 64, 48, 1e-3
 RED, GREEN, BLUE = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
-@pytest.fixture(scope="session", autouse=True)
-def _tcd_backend_render():
-    backend.init("cpu", "f64")
+@pytest.fixture(scope="module", autouse=True)
+def _tcd_backend_render(request):
+    """The session's backend (conftest: --arch, --precision)."""
+    request.getfixturevalue("backend")
 
 
 def top_camera():
@@ -304,6 +305,7 @@ def test_viewer_without_display_points_to_offscreen_render(states, monkeypatch):
         viewer.view(states)
 
 
+@pytest.mark.f64_only   # `python -m tcd.render --regen-reference` renders the reference in f64
 def test_regen_reference_writes_to_the_given_place(tmp_path, monkeypatch):
     monkeypatch.setattr(render, "REFERENCE_IMAGE", Path(tmp_path / "ref.png"))
     assert render.main(["--regen-reference"]) == 0
