@@ -35,9 +35,11 @@ def main(argv=None) -> int:
     ap.add_argument("scenario", help="the scenario that prepared the samples (mould, heights)")
     ap.add_argument("samples", nargs="+", help="prepared.h5 files")
     ap.add_argument("--json", metavar="FILE", help="also write the numbers to FILE")
+    ap.add_argument("--precision", default="f64", choices=("f64", "f32"),
+                    help="Taichi's precision for the numbers (default f64)")
     args = ap.parse_args(argv)
     scn = config.load_scenario(args.scenario)
-    backend.init("cpu", "f64")
+    backend.init("cpu", args.precision)
     rows = [sample_numbers(scn, pathlib.Path(p)) for p in args.samples]
     print("| seed | particles (binder + surface) | diameter, height (mm) | layer heights, equal-volume interface (mm) | "
           "packing per layer (slabs) | packing | largest overlap / d_min | outside | coordination | "

@@ -49,19 +49,40 @@ smoothing_window_mm = 0.02
 """
 
 
+def run_tcd(argv) -> int:
+    """`tcd run` (cli.main) on the session's backend (conftest's --arch and --precision, which
+    tcd.init was given) where argv names none: the same runs in every configuration of the
+    suite."""
+    from tcd import backend
+    argv = list(argv)
+    if "--arch" not in argv:
+        argv += ["--arch", backend.arch()]
+    if "--precision" not in argv:
+        argv += ["--precision", backend.precision()]
+    return cli.main(argv)
+
+
+def load_here(path):
+    """The scenario at `path` on the session's backend (as run_tcd)."""
+    from tcd import backend
+    from tcd.config import load_scenario
+    return load_scenario(str(path)).with_overrides(arch=backend.arch(),
+                                                    precision=backend.precision())
+
+
 @pytest.fixture(scope="module")
 def micro_run(tmp_path_factory):
     d = tmp_path_factory.mktemp("micro")
     scenario = d / "micro.toml"
     scenario.write_text(MICRO)
     out = d / "out"
-    assert cli.main(["run", str(scenario), "--out", str(out)]) == 0
+    assert run_tcd(["run", str(scenario), "--out", str(out)]) == 0
     return scenario, out
 
 
 def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     out = tmp_path / "tiny"
-    assert cli.main(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 0
+    assert run_tcd(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     s = summary["samples"][0]
     assert s["particles"] == 180
@@ -76,7 +97,7 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert (sample / "shear_series.csv").read_text().splitlines()[0].startswith("time [s]")
     assert "frames" in io.info(sample / "states.h5")
     # refuses to overwrite a finished run without --resume
-    assert cli.main(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
+    assert run_tcd(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
 
 
 def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
@@ -106,14 +127,15 @@ def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
 def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, capsys):
     """prepared.h5 carries the preparation's phase records: benchmarks/sample_table.py, which
     reads only the file, reports the same courses as built as the run's summary."""
-    from tcd.config import load_scenario
+    from tcd import backend
     scenario, out = micro_run
     table = benchmark_script("sample_table")
-    numbers = table.sample_numbers(load_scenario(scenario), out / "sample_3" / "prepared.h5")
+    numbers = table.sample_numbers(load_here(scenario), out / "sample_3" / "prepared.h5")
     sample = json.loads((out / "sample_3" / "summary.json").read_text())
     built = sample["stages"]["0:prepare"]["course_heights_as_built_mm"]
     assert numbers["course_heights_as_built_mm"] == pytest.approx(built, rel=1e-12)
-    assert table.main([str(scenario), str(out / "sample_3" / "prepared.h5")]) == 0
+    assert table.main([str(scenario), str(out / "sample_3" / "prepared.h5"),
+                       "--precision", backend.precision()]) == 0
     row = capsys.readouterr().out.splitlines()[2]
     prep = sample["stages"]["0:prepare"]
     top, end = prep["course_heights_as_built_by_highest_grain_mm"], prep["course_heights_by_highest_grain_mm"]
@@ -143,7 +165,7 @@ def test_same_scenario_same_numbers_with_parallel_samples(micro_run, tmp_path):
     two = tmp_path / "two.toml"
     two.write_text(MICRO.replace("seeds = [3]", "seeds = [3, 4]"))
     again = tmp_path / "again"
-    assert cli.main(["run", str(two), "--out", str(again), "--jobs", "2"]) == 0
+    assert run_tcd(["run", str(two), "--out", str(again), "--jobs", "2"]) == 0
     a, _ = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
     b, _ = io.load_checkpoint(again / "sample_3" / "checkpoint.h5")
     for key in ("particles/x", "particles/v", "bonds/state", "bonds/impulse"):
@@ -157,7 +179,9 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     scenario, out = micro_run
     killed = tmp_path / "killed"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    cmd = [sys.executable, "-m", "tcd.cli", "run", str(scenario), "--out", str(killed)]
+    from tcd import backend
+    cmd = [sys.executable, "-m", "tcd.cli", "run", str(scenario), "--out", str(killed),
+           "--arch", backend.arch(), "--precision", backend.precision()]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ck = killed / "sample_3" / "checkpoint.h5"
     deadline = time.time() + 240
@@ -173,7 +197,7 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     assert not (killed / "summary.json").exists()
     # what was written before the kill is readable
     assert io.frame_count(killed / "sample_3" / "states.h5") >= 1
-    assert cli.main(["run", str(scenario), "--out", str(killed), "--resume"]) == 0
+    assert run_tcd(["run", str(scenario), "--out", str(killed), "--resume"]) == 0
     a, _ = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
     b, _ = io.load_checkpoint(killed / "sample_3" / "checkpoint.h5")
     for key in a:
@@ -182,7 +206,6 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     sb = json.loads((killed / "summary.json").read_text())["samples"][0]
     assert sa["tau_peak_MPa"] == sb["tau_peak_MPa"] and sa["d_peak_mm"] == sb["d_peak_mm"]
     # each invocation's loop mode (with fast math on the last bits follow it): inline, twice
-    from tcd import backend
     assert sa["cpu_loops"] == [backend.loop_mode()]
     assert backend.loop_mode() in ("inline", "inline (fast math off)")
     assert sb["cpu_loops"] == [backend.loop_mode()] * 2
@@ -191,7 +214,7 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
 def test_resume_without_checkpoint_is_refused(tmp_path):
     scenario = tmp_path / "micro.toml"
     scenario.write_text(MICRO)
-    assert cli.main(["run", str(scenario), "--out", str(tmp_path / "nothing"), "--resume"]) == 2
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "nothing"), "--resume"]) == 2
 
 
 def test_resume_restores_the_wall_forces_a_servo_plate_reads(tmp_path):
@@ -233,7 +256,7 @@ def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_
     text = head + shear.replace('kind = "shear"', f'kind = "shear"\nsample = "{prepared.as_posix()}"', 1)
     part = tmp_path / "shear_only.toml"
     part.write_text(text)
-    assert cli.main(["run", str(part), "--out", str(tmp_path / "two")]) == 0
+    assert run_tcd(["run", str(part), "--out", str(tmp_path / "two")]) == 0
     one = io.read_series(out / "sample_3" / "shear_series.h5")
     two = io.read_series(tmp_path / "two" / "sample_3" / "shear_series.h5")
     assert len(one["shear_stress"]) == len(two["shear_stress"]) > 10
@@ -342,15 +365,14 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     interrupted mid-way resumes from its checkpoint to the same end; a scenario with a
     preparation stage is refused with a message that says why."""
     from tcd import runner
-    from tcd.config import load_scenario
     _, out = micro_run
     prepared = (out / "sample_3" / "prepared.h5").as_posix()
     single = tmp_path / "single.toml"
     single.write_text(_shear_only(prepared))
-    assert cli.main(["run", str(single), "--out", str(tmp_path / "one")]) == 0
+    assert run_tcd(["run", str(single), "--out", str(tmp_path / "one")]) == 0
     pair = tmp_path / "pair.toml"
     pair.write_text(_shear_only(prepared, "[3, 4]"))
-    assert cli.main(["run", str(pair), "--out", str(tmp_path / "batch"), "--batch"]) == 0
+    assert run_tcd(["run", str(pair), "--out", str(tmp_path / "batch"), "--batch"]) == 0
     one = io.read_series(tmp_path / "one" / "sample_3" / "shear_series.h5")
     for seed in (3, 4):
         got = io.read_series(tmp_path / "batch" / f"sample_{seed}" / "shear_series.h5")
@@ -369,18 +391,18 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
 
     monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(15))
     with pytest.raises(KeyboardInterrupt):
-        runner.run_batch(load_scenario(str(pair)), tmp_path / "cut", progress=False)
+        runner.run_batch(load_here(pair), tmp_path / "cut", progress=False)
     assert (tmp_path / "cut" / "batch_checkpoint.h5").exists()
     assert not (tmp_path / "cut" / "summary.json").exists()
     monkeypatch.undo()
-    assert cli.main(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
+    assert run_tcd(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
     for seed in (3, 4):
         got = io.read_series(tmp_path / "cut" / f"sample_{seed}" / "shear_series.h5")
         assert np.array_equal(one["shear_stress"], got["shear_stress"]), seed
         assert np.array_equal(one["time"], got["time"]), seed
 
     scenario, _ = micro_run
-    assert cli.main(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
 
 
 def test_renumbered_shear_traces_its_particles_and_resumes_bit_for_bit(micro_run, tmp_path,
@@ -391,7 +413,6 @@ def test_renumbered_shear_traces_its_particles_and_resumes_bit_for_bit(micro_run
     the solver's tolerance, and a run interrupted mid-shear resumes to the same end bit for
     bit (the resumed run does not renumber again)."""
     from tcd import runner
-    from tcd.config import load_scenario
     _, out = micro_run
     prepared = out / "sample_3" / "prepared.h5"
     plain = tmp_path / "plain.toml"
@@ -400,8 +421,8 @@ def test_renumbered_shear_traces_its_particles_and_resumes_bit_for_bit(micro_run
     text = text.replace("checkpoint_every_s = 0.5", "checkpoint_every_s = 1e6")
     renum = tmp_path / "renum.toml"
     renum.write_text(text)
-    assert cli.main(["run", str(plain), "--out", str(tmp_path / "plain")]) == 0
-    assert cli.main(["run", str(renum), "--out", str(tmp_path / "renum")]) == 0
+    assert run_tcd(["run", str(plain), "--out", str(tmp_path / "plain")]) == 0
+    assert run_tcd(["run", str(renum), "--out", str(tmp_path / "renum")]) == 0
     sample, _ = io.load_checkpoint(prepared)
     first = io.read_frame(tmp_path / "renum" / "sample_3" / "states.h5", 0)
     index = first["particles/sample_index"]
@@ -425,12 +446,12 @@ def test_renumbered_shear_traces_its_particles_and_resumes_bit_for_bit(micro_run
     # interrupted mid-shear, then resumed: the same end as the uninterrupted renumbered run
     monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(20))
     with pytest.raises(KeyboardInterrupt):
-        runner.run_sample(load_scenario(str(renum)), 3, tmp_path / "cut" / "sample_3",
+        runner.run_sample(load_here(renum), 3, tmp_path / "cut" / "sample_3",
                           resume=False, progress=False)
     monkeypatch.undo()
     _, meta = io.load_checkpoint(tmp_path / "cut" / "sample_3" / "checkpoint.h5")
     assert 0 < meta["step"]
-    runner.run_sample(load_scenario(str(renum)), 3, tmp_path / "cut" / "sample_3", resume=True,
+    runner.run_sample(load_here(renum), 3, tmp_path / "cut" / "sample_3", resume=True,
                       progress=False)
     got = io.read_series(tmp_path / "cut" / "sample_3" / "shear_series.h5")
     for key in ("displacement", "shear_stress", "sweeps", "bonds_intact"):
@@ -502,16 +523,19 @@ def test_resume_refuses_a_scenario_or_backend_other_than_the_run_started_with(mi
     before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
     changed = tmp_path / "changed.toml"
     changed.write_text(MICRO.replace("max_sweeps = 500", "max_sweeps = 500\n[material]\nfriction = 0.3"))
-    assert cli.main(["run", str(changed), "--out", str(run), "--resume"]) == 2
+    assert run_tcd(["run", str(changed), "--out", str(run), "--resume"]) == 2
     err = capsys.readouterr().err
     assert "--resume with a scenario other than the one this run started with" in err
     assert "material.friction: 0.7 -> 0.3" in err
     same = tmp_path / "same.toml"
     same.write_text("# a comment\n" + MICRO)
-    assert cli.main(["run", str(same), "--out", str(run), "--resume", "--precision", "f32"]) == 2
-    assert "backend.precision: 'f64' -> 'f32'" in capsys.readouterr().err
+    from tcd import backend
+    mine = backend.precision()
+    other = "f32" if mine == "f64" else "f64"
+    assert run_tcd(["run", str(same), "--out", str(run), "--resume", "--precision", other]) == 2
+    assert f"backend.precision: '{mine}' -> '{other}'" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
-    assert cli.main(["run", str(same), "--out", str(run), "--resume"]) == 0
+    assert run_tcd(["run", str(same), "--out", str(run), "--resume"]) == 0
     assert (run / "scenario.toml").read_text() == MICRO       # the record is the first one
 
 
@@ -529,7 +553,7 @@ def test_resume_refuses_another_fast_math_setting(micro_run, tmp_path, capsys, m
     record = json.loads((run / "run.json").read_text())
     (run / "run.json").write_text(json.dumps({**record, "fast_math": not now}))
     before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
-    assert cli.main(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"]) == 2
+    assert run_tcd(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"]) == 2
     err = capsys.readouterr().err
     assert f"backend.fast_math: {not now!r} -> {now!r}" in err
     assert f"TCD_FAST_MATH={int(not now)}" in err
@@ -537,13 +561,13 @@ def test_resume_refuses_another_fast_math_setting(micro_run, tmp_path, capsys, m
     del record["fast_math"]                     # a run started before session 33
     (run / "run.json").write_text(json.dumps(record))
     monkeypatch.delenv(backend.FAST_MATH_ENV, raising=False)
-    code = cli.main(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"])
+    code = run_tcd(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"])
     if now:
         assert code == 0
     else:
         assert code == 2 and "predates the record" in capsys.readouterr().err
         monkeypatch.setenv(backend.FAST_MATH_ENV, "0")      # the user says how it started
-        assert cli.main(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"]) == 0
+        assert run_tcd(["run", str(out / "scenario.toml"), "--out", str(run), "--resume"]) == 0
 
 
 def test_run_into_a_file_is_refused_before_anything_is_written(tmp_path, capsys):
@@ -551,7 +575,7 @@ def test_run_into_a_file_is_refused_before_anything_is_written(tmp_path, capsys)
     target.write_bytes(b"an image")
     scenario = tmp_path / "micro.toml"
     scenario.write_text(MICRO)
-    assert cli.main(["run", str(scenario), "--out", str(target)]) == 2
+    assert run_tcd(["run", str(scenario), "--out", str(target)]) == 2
     assert "exists and is not a directory" in capsys.readouterr().err
     assert target.read_bytes() == b"an image"
 
@@ -582,7 +606,9 @@ def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_r
     from tcd import bench
     _, out = micro_run
     trace = tmp_path / "shear.csv"
-    res = bench.shear(time=0.004, sample=str(out / "sample_3" / "prepared.h5"), trace=str(trace))
+    from tcd import backend
+    res = bench.shear(time=0.004, sample=str(out / "sample_3" / "prepared.h5"), trace=str(trace),
+                      arch=backend.arch(), precision=backend.precision())
     assert res["particles"] == 80 and res["steps"] == 20 and res["bonds"] > 0
     assert res["seconds_per_particle_step"] > 0
     ph = res["phases"]
@@ -629,7 +655,7 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         scenario = tmp_path / f"{name}.toml"
         scenario.write_text(_shear_only((tmp_path / "s_{seed}.h5").as_posix(), "[3, 4]"))
         run_dir = tmp_path / f"run_{name}"
-        assert cli.main(["run", str(scenario), "--out", str(run_dir)]) == 2, name
+        assert run_tcd(["run", str(scenario), "--out", str(run_dir)]) == 2, name
         err = capsys.readouterr().err
         assert str(path) in err and __import__("re").search(message, err), (name, err)
         assert not run_dir.exists(), name           # nothing ran, nothing was written
@@ -644,7 +670,7 @@ def test_a_series_ends_where_its_phase_ended_whatever_series_every(micro_run, tm
     text = text.replace("displacement_mm = 0.2", "displacement_mm = 0.03")
     scenario = tmp_path / "sparse.toml"
     scenario.write_text(text)
-    assert cli.main(["run", str(scenario), "--out", str(tmp_path / "sparse")]) == 0
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "sparse")]) == 0
     s = io.read_series(tmp_path / "sparse" / "sample_3" / "shear_series.h5")
     steps = int(round(0.03e-3 / (600e-3 / 60) / 5e-4))            # 6 steps of 5e-4 s
     summary = json.loads((tmp_path / "sparse" / "sample_3" / "summary.json").read_text())
