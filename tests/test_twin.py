@@ -21,9 +21,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def twin(tmp_path_factory):
+def twin(tmp_path_factory, backend):
     out = tmp_path_factory.mktemp("twin") / "out"
-    assert cli.main(["run", str(ROOT / "scenarios" / "twin.toml"), "--out", str(out)]) == 0
+    arch, precision = backend
+    assert cli.main(["run", str(ROOT / "scenarios" / "twin.toml"), "--out", str(out),
+                     "--arch", arch, "--precision", precision]) == 0
     sample = json.loads((out / "sample_1" / "summary.json").read_text())
     return out, sample["stages"]["0:prepare"], sample["stages"]["1:shear"]
 
