@@ -94,6 +94,17 @@ def assert_batch_steps_as_alone(sims, steps: int):
     return batch, np.array(sweeps)
 
 
+def run_tcd(argv) -> int:
+    """`tcd run` (cli.main) on the session's backend (the --arch and --precision tcd.init was
+    given) where argv names none: the same runs in every configuration of the suite."""
+    from tcd import backend, cli
+    argv = list(argv)
+    if "--arch" not in argv:
+        argv += ["--arch", backend.arch()]
+    if "--precision" not in argv:
+        argv += ["--precision", backend.precision()]
+    return cli.main(argv)
+
 def env_without_thread_settings(**extra) -> dict:
     """This process's environment for a child, less TCD_CPU_THREADS, TCD_PARALLEL_LOOPS
     (pytest_configure sets the first) and TCD_FAST_MATH, plus `extra`."""

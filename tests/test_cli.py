@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import tcd
+from conftest import run_tcd
 from tcd import io
 from tcd.cli import main
 
@@ -559,15 +560,14 @@ def test_frame_with_an_animation_output_is_refused(tmp_path, capsys):
     assert "an animation" in capsys.readouterr().err and not (tmp_path / "a.gif").exists()
 
 
-def test_shear_of_a_sample_file_farther_than_its_diameter_is_refused(tmp_path, capsys, backend):
+def test_shear_of_a_sample_file_farther_than_its_diameter_is_refused(tmp_path, capsys):
     """The mould's diameter of a sample file is known once the file is read: a displacement
     at least as large (the upper ring would leave the lower one) stops the run with one line
     naming the key, before any step."""
     scenario = tmp_path / "far.toml"
     scenario.write_text(f'name = "far"\n[[stage]]\nkind = "shear"\nsample = "{SAMPLE}"\n'
                         'displacement_mm = 200.0\nvelocity_mm_per_min = 60000.0\n')
-    assert main(["run", str(scenario), "--out", str(tmp_path / "out"), "--arch", backend[0],
-                 "--precision", backend[1]]) == 2
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "tcd: error: shear displacement_mm 200 mm is not smaller than the sample's 150 mm " \
            "diameter" in err and "Traceback" not in err, err

@@ -11,7 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from tcd import cli, io
+from conftest import run_tcd
+from tcd import io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -47,19 +48,6 @@ ring_height_mm = 4.0
 gap_mm = 0.3
 smoothing_window_mm = 0.02
 """
-
-
-def run_tcd(argv) -> int:
-    """`tcd run` (cli.main) on the session's backend (conftest's --arch and --precision, which
-    tcd.init was given) where argv names none: the same runs in every configuration of the
-    suite."""
-    from tcd import backend
-    argv = list(argv)
-    if "--arch" not in argv:
-        argv += ["--arch", backend.arch()]
-    if "--precision" not in argv:
-        argv += ["--precision", backend.precision()]
-    return cli.main(argv)
 
 
 def load_here(path):

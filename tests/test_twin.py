@@ -15,17 +15,16 @@ import pathlib
 import numpy as np
 import pytest
 
-from tcd import cli, io
+from conftest import run_tcd
+from tcd import io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def twin(tmp_path_factory, backend):
+def twin(tmp_path_factory):
     out = tmp_path_factory.mktemp("twin") / "out"
-    arch, precision = backend
-    assert cli.main(["run", str(ROOT / "scenarios" / "twin.toml"), "--out", str(out),
-                     "--arch", arch, "--precision", precision]) == 0
+    assert run_tcd(["run", str(ROOT / "scenarios" / "twin.toml"), "--out", str(out)]) == 0
     sample = json.loads((out / "sample_1" / "summary.json").read_text())
     return out, sample["stages"]["0:prepare"], sample["stages"]["1:shear"]
 
