@@ -164,7 +164,16 @@ def bonded_cluster(variants):
     return results
 
 
-def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule():
+def bond_bound(precision: str) -> float:
+    """Largest bond impulse difference between two schedules or sweep orders, relative to the
+    largest impulse, after 3 steps at 1e-7. f64: 8.2e-4 measured, bound 3e-3. f32: 5.1e-3
+    and 5.2e-3 measured (session 40; 1e-7 is close to f32's rounding of the impulse sums,
+    2^-24 = 6e-8, so where each path stops is partly rounding), bound 2e-2. A wrong visiting
+    order or a lost update is of order 1."""
+    return 3e-3 if precision == "f64" else 2e-2
+
+
+def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule(precision):
     """A bonded pile carried sideways by its moving mould, converged tightly: the partitioned
     schedule (particle bond blocks split between the ranges and the boundary, NNCG) reaches
     the serial schedule's velocities and bond impulses. The two converge to each other with the
@@ -177,10 +186,10 @@ def test_bonded_cluster_under_a_moving_wall_matches_the_serial_schedule():
                                              {"schedule": "partitioned"}])
     assert np.abs(v_s).max() > 0.001 and np.abs(b_s).max() > 0
     assert np.abs(v_p - v_s).max() <= 2e-4 * np.abs(v_s).max()
-    assert np.abs(b_p - b_s).max() <= 3e-3 * np.abs(b_s).max()
+    assert np.abs(b_p - b_s).max() <= bond_bound(precision) * np.abs(b_s).max()
 
 
-def test_forward_and_symmetric_sweeps_reach_the_same_solution():
+def test_forward_and_symmetric_sweeps_reach_the_same_solution(precision):
     """The sweep order changes the path, not the solution: on the bonded pile above, forward
     sweeps and alternating forward-backward ones (serial schedule) end within the tolerance's
     reach of each other, with the bounds of the partitioned-schedule test; and they are not
@@ -189,7 +198,7 @@ def test_forward_and_symmetric_sweeps_reach_the_same_solution():
                                              {"schedule": "serial", "sweep_order": "symmetric"}])
     assert not np.array_equal(v_f, v_s)
     assert np.abs(v_f - v_s).max() <= 2e-4 * np.abs(v_s).max()
-    assert np.abs(b_f - b_s).max() <= 3e-3 * np.abs(b_s).max()
+    assert np.abs(b_f - b_s).max() <= bond_bound(precision) * np.abs(b_s).max()
 
 
 def test_a_batch_refuses_the_partitioned_schedule():

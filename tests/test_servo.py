@@ -30,10 +30,10 @@ def sandwich(top_gap: float):
     return sim, Phase("hold", sim.walls, 400, info={"servo": servo}), weight
 
 
-def test_servo_plate_backs_off_a_jammed_bed_instead_of_ratcheting_into_it():
+def test_servo_plate_backs_off_a_jammed_bed_instead_of_ratcheting_into_it(precision):
     sim, phase, weight = sandwich(top_gap=0.0001)
     servo = phase.info["servo"]
-    z, push, overlap = [], [], []
+    z, push, overlap, floor = [], [], [], []
     for _ in range(400):
         servo_step(sim, phase)
         sim.step()
@@ -43,12 +43,25 @@ def test_servo_plate_backs_off_a_jammed_bed_instead_of_ratcheting_into_it():
         plate = sim.walls[2].position(sim.time)[2]
         overlap.append(max(0.0, float((x[:, 2] + r).max() - plate),
                            float(2 * r[0] - (x[1, 2] - x[0, 2]))))
+        floor.append(float(r[0] - x[0, 2]))
     z, push, overlap = np.array(z), np.array(push), np.array(overlap)
     quantum = servo["v_max"] * H                  # 1 um: the plate's step
+    # A step into the jammed stack is infeasible for rigid grains: it ends at the sweep cap
+    # with an impulse that grew with every sweep, and the next step, backing off, starts from
+    # it and ends at the cap too, the stack sinking half a step into the floor and coming back.
+    # In f64 that two-step cycle is stable. In f32 the rounding of these unconverged steps
+    # lets the lower grain sink by about one plate step every 60 steps, until the end-of-step
+    # projection holds it at the overlap slop (0.002 x 4 mm = 8 um: measured, 8.0 um from
+    # step 200 to 1600; session 40). The bound follows the precision.
+    slop = sim.settings.overlap_slop * 2 * float(sim.radii().min())
+    sink = 0.0 if precision == "f64" else slop
     # it came down to the bed (the gap of 0.1 mm closed) ...
     assert z.min() < 0.008 + quantum
     # ... and then never held it below its height: within one step of the bed's top
-    assert z[-100:].min() >= 0.008 - 2 * quantum
+    assert z[-100:].min() >= 0.008 - sink - 2 * quantum
+    # the floor contact holds: the stack sinks by the first infeasible step and half of the
+    # next (1.5 um in f64), or to the slop in f32
+    assert max(floor) <= sink + 2 * quantum
     # no overlap builds up (the ratcheting plate of session 15 pushed ever deeper)
     assert overlap[-100:].max() <= 3 * quantum
     # no locked-in force: the plate hovers, one step into the bed (a spike of push: rigid

@@ -33,7 +33,7 @@ def test_resting_sphere_still_carries_m_g_h(tol):
     np.testing.assert_allclose(sim.velocities()[0], 0.0, atol=1e-12 if tol < 1e-6 else 1e-7)
 
 
-def _ramped_cantilever(c: float, steps: int = 300):
+def _ramped_cantilever(c: float, steps: int = 300, tolerance: float = 1e-7):
     """A bonded truss clamped at one end, its tip pulled down by a force growing linearly
     in time (so every bond impulse grows about linearly): tip path and sweeps per step."""
     r = 0.004
@@ -41,8 +41,8 @@ def _ramped_cantilever(c: float, steps: int = 300):
     fixed = np.zeros(len(x), bool)
     fixed[0] = fixed[7] = True
     sim = Simulation([r] * len(x), x, fixed=fixed,
-                     settings=SolverSettings(tolerance=1e-7, max_sweeps=5000, gravity=(0, 0, 0),
-                                             warm_start_extrapolation=c),
+                     settings=SolverSettings(tolerance=tolerance, max_sweeps=5000,
+                                             gravity=(0, 0, 0), warm_start_extrapolation=c),
                      bond_law=BondLaw(mode="burgers", yield_stress=1e12),
                      domain=((-0.01, -0.01, -0.1), (0.06, 0.01, 0.02)))
     assert sim.create_bonds(gap_tolerance=1e-7) == 6 + 5 + 12
@@ -59,8 +59,13 @@ def _ramped_cantilever(c: float, steps: int = 300):
 
 
 def test_ramped_load_same_motion_in_fewer_sweeps(precision):
-    path0, sweeps0 = _ramped_cantilever(0.0)
-    path1, sweeps1 = _ramped_cantilever(1.0)
+    # 1e-7 is the relative impulse change of a sweep; in f32 that is near the rounding of the
+    # impulse sums themselves (2^-24 = 6e-8), where the sweeps count noise, not convergence
+    # (c = 0: 87792 sweeps, c = 1: 55650, 186 per step where f64 takes 43). At 1e-5 f32
+    # gives 24840 against 5001 (session 40).
+    tolerance = 1e-7 if precision == "f64" else 1e-5
+    path0, sweeps0 = _ramped_cantilever(0.0, tolerance=tolerance)
+    path1, sweeps1 = _ramped_cantilever(1.0, tolerance=tolerance)
     assert path0[-1] < -1e-6                     # the tip really moves
     # the same motion to the solver's tolerance (f32 rounding sets the floor there)
     np.testing.assert_allclose(path1, path0, rtol=0, atol=abs(path0[-1]) * (1e-4 if precision == "f64" else 2e-3))
