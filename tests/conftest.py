@@ -105,6 +105,7 @@ def run_tcd(argv) -> int:
         argv += ["--precision", backend.precision()]
     return cli.main(argv)
 
+
 def env_without_thread_settings(**extra) -> dict:
     """This process's environment for a child, less TCD_CPU_THREADS, TCD_PARALLEL_LOOPS
     (pytest_configure sets the first) and TCD_FAST_MATH, plus `extra`."""

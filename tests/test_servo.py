@@ -53,7 +53,7 @@ def test_servo_plate_backs_off_a_jammed_bed_instead_of_ratcheting_into_it(precis
     # lets the lower grain sink by about one plate step every 60 steps, until the end-of-step
     # projection holds it at the overlap slop (0.002 x 4 mm = 8 um: measured, 8.0 um from
     # step 200 to 1600; session 40). The bound follows the precision.
-    slop = sim.settings.overlap_slop * 2 * float(sim.radii().min())
+    slop = sim.settings.overlap_slop * 2 * sim.r_min    # as the projection computes it
     sink = 0.0 if precision == "f64" else slop
     # it came down to the bed (the gap of 0.1 mm closed) ...
     assert z.min() < 0.008 + quantum
