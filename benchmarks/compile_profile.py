@@ -13,7 +13,7 @@ COMPILE_PROFILE.<pid>.tests.txt (seconds, instances, test) when it ends; the sec
 adds them up over the processes. An empty TI_OFFLINE_CACHE_FILE_PATH measures what a fresh
 CI machine compiles. Processes that tests start themselves (`tcd run` children) are not
 counted. Session 34 used it to cut the suite from 803 s to 485 s with an empty cache
-(README, "Test suite and main job").
+(docs/testing.md).
 """
 import atexit
 import collections

@@ -26,7 +26,7 @@ check that `[solver] convergence = "quad"` applies, tcd/solver.py, quad_terms).
 
 Session 22 (NNCG, the default): on the step at 0.48 s LMGC90's norms are STRICTER than
 tcd's: after 1000 sweeps tcd's measure is 1.4e-4, QuadDV 2.3e-4, QuadDVR 5.7e-4 (the
-README's "Performance" has the table).
+docs/performance.md has the table).
 """
 from __future__ import annotations
 

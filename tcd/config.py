@@ -372,8 +372,8 @@ class ShearStage(_Model):
     sample needs a tighter tolerance than a pour (docs/measurements.md, "Convergence of the
     shear"). `renumber`: number
     the particles along the shear (x) before bonding (`Simulation.renumber`): cheaper steps on
-    the partitioned schedule (on one thread it depends on the sweep order: README,
-    "Performance"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index).
+    the partitioned schedule (on one thread it depends on the sweep order: docs/performance.md,
+    "Solver settings that change the speed"), and numbers that differ at the level of the solver's tolerance; each particle's index in the sample is kept (particles/sample_index).
     `ring_edges`: where a ring ends, "rim" (its inner circle: a grain beyond the ring's end
     touches it only there) or "extended" (the ring's wall reaches one grain radius further:
     the geometry of sessions 1-31, which the calibration scenarios keep; the study's use "rim";

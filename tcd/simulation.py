@@ -139,12 +139,12 @@ class SolverSettings:
     "symmetric" (forward and backward sweeps alternate: the default, and the order of every
     shipped result) or "forward" (every sweep in item order: fewer sweeps on the shear, 25.0
     against 34.4 per step, but larger overlaps under the vibrating plate of a preparation:
-    README, "Performance"); the coloured and resident schedules always sweep their colours
+    docs/performance.md); the coloured and resident schedules always sweep their colours
     forward;
     warm_start_extrapolation c in [0, 1]: each bond, and each contact that carried an impulse
     at the last two steps, starts the step from R_n + c (R_n - R_n-1) instead of R_n (0, the
     default and the setting of every shipped result: the last impulse; the stopping rule is
-    the same, only the starting point moves: README, "Performance");
+    the same, only the starting point moves: docs/performance.md);
     alert_ratio:
     alert distance as a fraction of the smallest radius; gravity (m/s^2, vector);
     overlap_slop: interpenetration (fraction of the smallest diameter) left alone by the

@@ -146,7 +146,7 @@ def test_quad_measure_stops_the_step_when_the_check_passes(schedule, bonded,
 def test_quad_is_stricter_than_the_impulse_measure_on_an_impact():
     """On a pile that has just been hit (its grains still moving) the 'Quad ' check at 1e-4
     takes at least as many sweeps as the impulse measure at 1e-4 (the pour's impact step:
-    README, "Performance"), and both end below their own tolerance."""
+    docs/performance.md), and both end below their own tolerance."""
     runs = {}
     for measure in ("impulse", "quad"):
         sim = _pile(False, tolerance=1e-4, convergence=measure)

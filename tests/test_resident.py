@@ -186,7 +186,7 @@ def test_velocities_are_the_free_ones_plus_the_impulses(backend, tol, monkeypatc
 def test_nncg_needs_fewer_sweeps_on_the_resident_schedule(backend):
     """The NNCG momentum on the resident schedule cuts the sweeps of a pour and of its bonded
     shear, to the same tolerance (sweep counts, not times: seed-1 shear of the shipped sample,
-    0.02 s, 28.5 mean sweeps against 70.3; README, "Performance")."""
+    0.02 s, 28.5 mean sweeps against 70.3; docs/performance.md)."""
     runs = {a: pour(1, "resident", acceleration=a) for a in ("none", "nncg")}
     sweeps = {a: [sim.step().sweeps for _ in range(200)] for a, sim in runs.items()}
     for sim in runs.values():

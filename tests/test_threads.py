@@ -94,7 +94,7 @@ def test_loops_in_the_pool_or_inline_give_the_same_numbers(backend, inline_side)
     """With the CPU's default (fast math off since session 33) a run's numbers do not depend on
     whether its loops run inline (`tcd run --jobs N`, one core per worker) or in the pool (a
     single run on several cores). With fast math on they differed in their last bits, and a bond
-    cascade made that a 4 % change in one sample's peak (README, "Loop mode")."""
+    cascade made that a 4 % change in one sample's peak (docs/results.md, "Loop mode")."""
     # the pool's side also with Taichi's IR optimisations on, as a run outside the tests has
     # them (conftest.py turns them off for compile time): the same numbers either way
     inline = dict(inline_side)
