@@ -24,7 +24,6 @@ contacts' sum m |v_ref - v_free|), the impulses 19 %.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -34,10 +33,8 @@ import taichi as ti
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import tcd  # noqa: E402
-from tcd import bench  # noqa: E402
 from tcd import solver as sk  # noqa: E402
-from solver_convergence import begin_step, pour_state  # noqa: E402
+from solver_convergence import begin_step, impact_step, impact_step_parser  # noqa: E402
 
 
 def solve(sim, state, t, k, acceleration):
@@ -66,17 +63,8 @@ def momentum(dv, m):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--particles", type=int, default=2600)
-    ap.add_argument("--time", type=float, default=0.48)
-    ap.add_argument("--sweeps", default="10,30,100,300,1000,3000")
-    ap.add_argument("--acceleration", choices=("nncg", "none"), default="nncg")
-    ap.add_argument("--state", default=None, help="pickle of the pour state (default "
-                    "/tmp/tcd_pour_state_<time>.pkl; made by pouring if missing)")
-    a = ap.parse_args()
-    tcd.init("cpu", "f64")
-    state = pour_state(a.particles, a.time, a.state or f"/tmp/tcd_pour_state_{a.time}.pkl")
-    sim = bench.pour_setup(a.particles, 1, 1e-4)
+    a = impact_step_parser(__doc__.split("\n")[0], "10,30,100,300,1000,3000").parse_args()
+    state, sim = impact_step(a)
     ks = [int(x) for x in a.sweeps.split(",")]
     ref = solve(sim, state, a.time, 3 * max(ks), a.acceleration)
     ref_momentum = momentum(ref["v"] - ref["v_free"], ref["m"])

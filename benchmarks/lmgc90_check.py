@@ -30,7 +30,6 @@ docs/performance.md has the table).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
@@ -40,10 +39,8 @@ import taichi as ti
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import tcd  # noqa: E402
-from tcd import bench  # noqa: E402
 from tcd import solver as sk  # noqa: E402
-from solver_convergence import begin_step, pour_state  # noqa: E402
+from solver_convergence import begin_step, impact_step, impact_step_parser  # noqa: E402
 
 def solve_capped(sim, state, t, k, acceleration):
     """Step from `state` through the solver with at most k sweeps; no integration after."""
@@ -62,17 +59,8 @@ def solve_capped(sim, state, t, k, acceleration):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--particles", type=int, default=2600)
-    ap.add_argument("--time", type=float, default=0.48)
-    ap.add_argument("--sweeps", default="1,3,10,30,100,300,1000,3000")
-    ap.add_argument("--acceleration", choices=("nncg", "none"), default="nncg")
-    ap.add_argument("--state", default=None, help="pickle of the pour state (default "
-                    "/tmp/tcd_pour_state_<time>.pkl; made by pouring if missing)")
-    a = ap.parse_args()
-    tcd.init("cpu", "f64")
-    state = pour_state(a.particles, a.time, a.state or f"/tmp/tcd_pour_state_{a.time}.pkl")
-    sim = bench.pour_setup(a.particles, 1, 1e-4)
+    a = impact_step_parser(__doc__.split("\n")[0], "1,3,10,30,100,300,1000,3000").parse_args()
+    state, sim = impact_step(a)
     print(f"pour of {a.particles} spheres, the step at t = {a.time} s, serial, {a.acceleration}")
     print("| sweeps | tcd's measure, last sweep | QuadDV | QuadDVR | MeanDVoR | contacts "
           "| solve time (s) |")

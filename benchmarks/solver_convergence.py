@@ -53,6 +53,26 @@ def pour_state(particles: int, t: float, path: str):
     return state
 
 
+def impact_step_parser(description: str, sweeps: str) -> argparse.ArgumentParser:
+    """The options of a study of one impact step (lmgc90_check.py, body_convergence.py)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--particles", type=int, default=2600)
+    ap.add_argument("--time", type=float, default=0.48)
+    ap.add_argument("--sweeps", default=sweeps)
+    ap.add_argument("--acceleration", choices=("nncg", "none"), default="nncg")
+    ap.add_argument("--state", default=None, help="pickle of the pour state (default "
+                    "/tmp/tcd_pour_state_<time>.pkl; made by pouring if missing)")
+    return ap
+
+
+def impact_step(a):
+    """tcd on the CPU in f64, the pour state of the options `a` and a pour simulation to
+    solve its step in: (state, sim)."""
+    tcd.init("cpu", "f64")
+    state = pour_state(a.particles, a.time, a.state or f"/tmp/tcd_pour_state_{a.time}.pkl")
+    return state, bench.pour_setup(a.particles, 1, 1e-4)
+
+
 def begin_step(sim, state, t):
     """Load `state` at time t and run the step up to its warm start (`Simulation._begin_step`).
     Returns the contacts; the caller applies the warm start (`solver.apply_warm_start`) and
