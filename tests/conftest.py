@@ -40,6 +40,12 @@ def backend(request):
 
 
 @pytest.fixture(scope="session")
+def on_backend(backend):
+    """The session's backend as keyword arguments (arch=, precision=) of tcd.bench's runs."""
+    return {"arch": backend[0], "precision": backend[1]}
+
+
+@pytest.fixture(scope="session")
 def precision(backend):
     return backend[1]
 

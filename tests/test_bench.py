@@ -6,7 +6,7 @@ import pytest
 from tcd import bench
 
 
-def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatch, backend):
+def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatch, on_backend):
     """The scan writes its CSV and plot after every size: a scan stopped during its second size
     keeps the first size's row, with the residual and sweeps that its timing bought."""
     real_setup = bench.pour_setup
@@ -20,7 +20,7 @@ def test_scaling_scan_keeps_finished_sizes_when_interrupted(tmp_path, monkeypatc
     out = tmp_path / "scan" / "scaling"
     with pytest.raises(KeyboardInterrupt):
         bench.scaling(sizes=(300, 600), steps=4, out=str(out), progress=seen.append,
-                      arch=backend[0], precision=backend[1])
+                      **on_backend)
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     assert [int(r["particles"]) for r in rows] == [300] and [r["particles"] for r in seen] == [300]
     row = rows[0]
@@ -47,30 +47,29 @@ def test_scaling_checks_its_arguments_before_the_first_size(tmp_path, monkeypatc
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_benchmark_without_a_timed_step_is_refused(backend):
+def test_a_benchmark_without_a_timed_step_is_refused(on_backend):
     """The first two steps compile and are not timed: --time below three steps would time
     nothing (below two it used to run two steps silently)."""
     assert bench.WARMUP_STEPS == 2
     for time in (1e-5, 2 * 2e-4, float("nan")):
         with pytest.raises(ValueError, match="less than 3 time steps"):
-            bench.pour(particles=10, time=time, arch=backend[0], precision=backend[1])
+            bench.pour(particles=10, time=time, **on_backend)
     for time in (0.0006, 3 * 2e-4, 2.6 * 2e-4):     # three steps, whatever the rounding
         bench._check_steps(time)
 
 
-def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark(backend):
+def test_a_pour_too_tall_for_the_mould_points_to_the_scaling_benchmark(on_backend):
     """A million spheres do not fit a 150 mm mould under 100 m of lattice column: the refusal
     names the benchmark that widens the cylinder with N (the GPU's 1e6 row)."""
     with pytest.raises(ValueError, match=r"above max_height.*tcd bench scaling --sizes 1000000"):
-        bench.pour(particles=1_000_000, time=0.01, arch=backend[0], precision=backend[1])
+        bench.pour(particles=1_000_000, time=0.01, **on_backend)
 
 
-def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path, backend):
+def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path, on_backend):
     """The phases cut the timed steps into windows that add up to the whole loop (steps,
     wall time, sweeps); the trace has one row per timed step with the same sweeps."""
     trace = tmp_path / "pour.csv"
-    out = bench.pour(particles=60, time=0.02, trace=str(trace), arch=backend[0],
-                     precision=backend[1])
+    out = bench.pour(particles=60, time=0.02, trace=str(trace), **on_backend)
     ph = out["phases"]
     assert len(ph) == 10 and sum(p["steps"] for p in ph) == out["steps"] - 2 == 98
     assert sum(p["wall_s"] for p in ph) == pytest.approx(out["loop_wall_s"], rel=0.05)
@@ -87,11 +86,11 @@ def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path, backend):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pour.csv"]     # no .part left
 
 
-def test_a_trace_into_a_missing_folder_is_refused_before_the_run(tmp_path, monkeypatch, backend):
+def test_a_trace_into_a_missing_folder_is_refused_before_the_run(tmp_path, monkeypatch,
+                                                                  on_backend):
     monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: pytest.fail("the pour was run"))
     with pytest.raises(FileNotFoundError, match="no such directory"):
         bench.pour(particles=60, time=0.02, trace=str(tmp_path / "nope" / "pour.csv"),
-                   arch=backend[0], precision=backend[1])
+                   **on_backend)
     with pytest.raises(ValueError, match="is a directory; give a file name"):
-        bench.pour(particles=60, time=0.02, trace=str(tmp_path), arch=backend[0],
-                   precision=backend[1])
+        bench.pour(particles=60, time=0.02, trace=str(tmp_path), **on_backend)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import run_tcd
-from tcd import io
+from tcd import backend, io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -52,7 +52,6 @@ smoothing_window_mm = 0.02
 
 def load_here(path):
     """The scenario at `path` on the session's backend (as run_tcd)."""
-    from tcd import backend
     from tcd.config import load_scenario
     return load_scenario(str(path)).with_overrides(arch=backend.arch(),
                                                     precision=backend.precision())
@@ -115,7 +114,6 @@ def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
 def test_prepared_file_keeps_its_courses_as_built(micro_run, benchmark_script, capsys):
     """prepared.h5 carries the preparation's phase records: benchmarks/sample_table.py, which
     reads only the file, reports the same courses as built as the run's summary."""
-    from tcd import backend
     scenario, out = micro_run
     table = benchmark_script("sample_table")
     numbers = table.sample_numbers(load_here(scenario), out / "sample_3" / "prepared.h5")
@@ -167,7 +165,6 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     scenario, out = micro_run
     killed = tmp_path / "killed"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    from tcd import backend
     cmd = [sys.executable, "-m", "tcd.cli", "run", str(scenario), "--out", str(killed),
            "--arch", backend.arch(), "--precision", backend.precision()]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -517,7 +514,6 @@ def test_resume_refuses_a_scenario_or_backend_other_than_the_run_started_with(mi
     assert "material.friction: 0.7 -> 0.3" in err
     same = tmp_path / "same.toml"
     same.write_text("# a comment\n" + MICRO)
-    from tcd import backend
     mine = backend.precision()
     other = "f32" if mine == "f64" else "f64"
     assert run_tcd(["run", str(same), "--out", str(run), "--resume", "--precision", other]) == 2
@@ -532,7 +528,6 @@ def test_resume_refuses_another_fast_math_setting(micro_run, tmp_path, capsys, m
     with the other setting is refused, naming TCD_FAST_MATH. A run from before the record (no
     key) had it on, unless TCD_FAST_MATH says otherwise now."""
     import shutil
-    from tcd import backend
     _, out = micro_run
     now = backend.fast_math_setting("cpu")
     assert json.loads((out / "run.json").read_text())["fast_math"] is now
@@ -588,15 +583,15 @@ def test_a_shear_starts_only_from_an_unbonded_prepared_sample(micro_run, tmp_pat
     sim.close()
 
 
-def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_run, tmp_path):
+def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_run, tmp_path,
+                                                                      on_backend):
     """`tcd bench shear --sample FILE --trace CSV` on the micro run's prepared sample: the
     figures of the loop, its ten phases adding up to it, one trace row per timed step."""
     from tcd import bench
     _, out = micro_run
     trace = tmp_path / "shear.csv"
-    from tcd import backend
     res = bench.shear(time=0.004, sample=str(out / "sample_3" / "prepared.h5"), trace=str(trace),
-                      arch=backend.arch(), precision=backend.precision())
+                      **on_backend)
     assert res["particles"] == 80 and res["steps"] == 20 and res["bonds"] > 0
     assert res["seconds_per_particle_step"] > 0
     ph = res["phases"]
