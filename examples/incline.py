@@ -35,7 +35,7 @@ def run(theta_deg: float = 20.0, mu: float = 0.3, time: float = 0.1, h: float = 
     steps = int(round(time / h))
     sim.step(steps)
     t = steps * h
-    m = 4.0 / 3.0 * math.pi * r**3 * 2600.0                  # tcd's default density
+    m = 4.0 / 3.0 * math.pi * r**3 * sim.density
     rolls = math.tan(th) < 3.5 * mu
     a = 5.0 / 7.0 * G * math.sin(th) if rolls else G * (math.sin(th) - mu * math.cos(th))
     spin = 5.0 / 7.0 * G * math.sin(th) * t if rolls else 2.5 * mu * G * math.cos(th) * t

@@ -16,6 +16,7 @@ writes the snapshots to a states file that `tcd info`, `tcd render` and `tcd exp
 from __future__ import annotations
 
 import argparse
+import collections
 import math
 
 import numpy as np
@@ -45,21 +46,21 @@ def run(particles: int = 300, scale: float = 0.5, seed: int = 1, out: str | None
     sim = Simulation(radii, x, walls=mould_walls, friction=0.7,
                      settings=SolverSettings(time_step=h),
                      domain=((-mould / 2,) * 2 + (0.0,), (mould / 2,) * 2 + (top,)))
-    mass = float(np.sum(2600.0 * 4.0 / 3.0 * math.pi * radii**3))
+    mass = float(np.sum(sim.density * 4.0 / 3.0 * math.pi * radii**3))
     every = max(1, int(round(snapshot_every / h)))
-    steps, settled, sweeps, floor = 0, False, [], []
     window = int(round(0.05 / h))                            # the floor force's average
+    steps, settled, sweeps, floor = 0, False, [], collections.deque(maxlen=window)
     while steps * h < max_time:
         rec = sim.step()
         steps += 1
         sweeps.append(rec.sweeps)
-        floor = (floor + [float(sim.wall_force(0)[2])])[-window:]
+        floor.append(float(sim.wall_force(0)[2]))
         if out and steps % every == 0:
             io.append_frame(out, frame_of(sim), time=sim.time, step=steps, stage="pour")
         if steps >= window and at_rest(sim, settle_speed):
             settled = True
             break
-    if out:
+    if out and steps % every != 0:          # the last state, unless just written
         io.append_frame(out, frame_of(sim), time=sim.time, step=steps, stage="pour")
     pos, r = sim.positions(), sim.radii()
     bed_top = float(np.max(pos[:, 2] + r))

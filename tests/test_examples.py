@@ -33,13 +33,14 @@ def test_the_incline_example_rolls_or_slips_as_the_closed_forms(theta, mu, rolls
 
 
 def test_the_bonded_creep_example_follows_F_J_t(precision):
-    o = example("bonded_creep").run(force=2.0, time=12.0, mode="burgers")
+    creep = example("bonded_creep")
+    o = creep.run(force=2.0, time=12.0, mode="burgers")
     assert len(o["rows"]) == 12 and o["bonds_intact"] == 1
     worst = max(abs(d / e - 1.0) for _, d, e in o["rows"])
     # f64: 4e-5 measured; f32 resolves an 8 mm position to 1e-9 m, 1e-3 of the opening
     assert worst < (1e-3 if precision == "f64" else 1e-2)
     # the example's own oracle is PHYSICS.md's J(t): J(0) = 1/K_m, the flow slope 1/eta_m
-    J = example("bonded_creep").creep_compliance
+    J = creep.creep_compliance
     assert float(J(0.0)) == pytest.approx(5e-7, rel=1e-15)
     assert float(J(1001.0) - J(1000.0)) == pytest.approx(1 / 2e7, rel=1e-9)
 
