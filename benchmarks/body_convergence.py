@@ -24,37 +24,23 @@ contacts' sum m |v_ref - v_free|), the impulses 19 %.
 """
 from __future__ import annotations
 
-import dataclasses
 import sys
 from pathlib import Path
 
 import numpy as np
-import taichi as ti
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tcd import solver as sk  # noqa: E402
-from solver_convergence import begin_step, impact_step, impact_step_parser  # noqa: E402
+from solver_convergence import impact_step, impact_step_parser, solve_capped  # noqa: E402
 
 
 def solve(sim, state, t, k, acceleration):
     """The step at t solved with exactly k sweeps: the bodies' free and final velocities,
     masses, the impulses and tcd's measure of the last sweep."""
-    sim.settings = dataclasses.replace(sim.settings, max_sweeps=k, tolerance=1e-300,
-                                       schedule="serial", acceleration=acceleration)
-    sim.schedule = "serial"
-    ct = begin_step(sim, state, t)
-    p = sim.particles
-    n = int(p.count[None])
-    v_free = p.v.to_numpy()[:n].copy()
-    sk.apply_warm_start(p, ct, sim.bonds)
-    s = sim.settings
-    sk.nlgs_serial(p, sim.wall_fields, ct, sim.bonds, sim.stats, s.max_sweeps, s.tolerance,
-                   s.check_every, *sim._sweep_flags())
-    ti.sync()
-    return dict(v=p.v.to_numpy()[:n].copy(), v_free=v_free,
-                m=1.0 / p.inv_mass.to_numpy()[:n],
-                impulse=ct.impulse.to_numpy()[:int(ct.total[None])].copy(),
+    _, _, v_free = solve_capped(sim, state, t, k, acceleration)
+    return dict(v=sim.velocities(), v_free=v_free,
+                m=1.0 / sim.particles.inv_mass.to_numpy()[:sim.n],
+                impulse=sim.contact_arrays()["impulse"],
                 residual=float(sim.stats.residual[None]))
 
 

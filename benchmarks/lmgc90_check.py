@@ -25,37 +25,18 @@ check that `[solver] convergence = "quad"` applies, tcd/solver.py, quad_terms).
         [--acceleration nncg|none] [--state /tmp/tcd_pour_state_T.pkl]
 
 Session 22 (NNCG, the default): on the step at 0.48 s LMGC90's norms are STRICTER than
-tcd's: after 1000 sweeps tcd's measure is 1.4e-4, QuadDV 2.3e-4, QuadDVR 5.7e-4 (the
-docs/performance.md has the table).
+tcd's: after 1000 sweeps tcd's measure is 1.4e-4, QuadDV 2.3e-4, QuadDVR 5.7e-4
+(docs/performance.md has the table).
 """
 from __future__ import annotations
 
-import dataclasses
 import sys
-import time
 from pathlib import Path
-
-import taichi as ti
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tcd import solver as sk  # noqa: E402
-from solver_convergence import begin_step, impact_step, impact_step_parser  # noqa: E402
+from solver_convergence import impact_step, impact_step_parser, solve_capped  # noqa: E402
 
-def solve_capped(sim, state, t, k, acceleration):
-    """Step from `state` through the solver with at most k sweeps; no integration after."""
-    sim.settings = dataclasses.replace(sim.settings, max_sweeps=k, tolerance=1e-300,
-                                       schedule="serial", acceleration=acceleration)
-    sim.schedule = "serial"
-    ct = begin_step(sim, state, t)
-    s = sim.settings
-    p, wl, bd = sim.particles, sim.wall_fields, sim.bonds
-    sk.apply_warm_start(p, ct, bd)
-    t0 = time.perf_counter()
-    sk.nlgs_serial(p, wl, ct, bd, sim.stats, s.max_sweeps, s.tolerance, s.check_every,
-                   *sim._sweep_flags())
-    ti.sync()
-    return ct, time.perf_counter() - t0
 
 
 def main():
@@ -66,7 +47,7 @@ def main():
           "| solve time (s) |")
     print("|---|---|---|---|---|---|---|")
     for k in [int(x) for x in a.sweeps.split(",")]:
-        ct, wall = solve_capped(sim, state, a.time, k, a.acceleration)
+        ct, wall, _ = solve_capped(sim, state, a.time, k, a.acceleration)
         q = sim.quad_norms()
         print(f"| {k} | {float(sim.stats.residual[None]):.2e} | {q['QuadDV']:.2e} | "
               f"{q['QuadDVR']:.2e} | {q['MeanDVoR']:+.2e} | {int(ct.total[None])} | "

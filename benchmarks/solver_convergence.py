@@ -28,8 +28,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
+import taichi as ti  # noqa: E402
+
 import tcd  # noqa: E402
 from tcd import bench  # noqa: E402
+from tcd import solver as sk  # noqa: E402
 
 VARIANTS = (("serial, NNCG", dict(schedule="serial", acceleration="nncg")),
             ("serial, plain GS", dict(schedule="serial", acceleration="none")),
@@ -71,6 +74,25 @@ def impact_step(a):
     tcd.init("cpu", "f64")
     state = pour_state(a.particles, a.time, a.state or f"/tmp/tcd_pour_state_{a.time}.pkl")
     return state, bench.pour_setup(a.particles, 1, 1e-4)
+
+
+def solve_capped(sim, state, t, k, acceleration):
+    """Step from `state` at time t through the serial solver with exactly k sweeps (a tolerance
+    never reached); no integration after. Returns (contacts, solve wall time, the bodies' free
+    velocities: those after the predictor, before the warm start)."""
+    sim.settings = dataclasses.replace(sim.settings, max_sweeps=k, tolerance=1e-300,
+                                       schedule="serial", acceleration=acceleration)
+    sim.schedule = "serial"
+    ct = begin_step(sim, state, t)
+    v_free = sim.velocities()
+    s = sim.settings
+    p, wl, bd = sim.particles, sim.wall_fields, sim.bonds
+    sk.apply_warm_start(p, ct, bd)
+    t0 = time.perf_counter()
+    sk.nlgs_serial(p, wl, ct, bd, sim.stats, s.max_sweeps, s.tolerance, s.check_every,
+                   *sim._sweep_flags())
+    ti.sync()
+    return ct, time.perf_counter() - t0, v_free
 
 
 def begin_step(sim, state, t):
