@@ -289,13 +289,19 @@ class Simulation:
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
                  time: float = 0.0, system=None):
         backend._require()
-        radius = np.asarray(radius, dtype=float).reshape(-1)
-        position = np.asarray(position, dtype=float).reshape(-1, 3)
+        radius = np.asarray(radius, dtype=float)
+        if radius.ndim > 1:
+            raise ValueError(f"radius must be one number per particle (shape (n,)), got shape "
+                             f"{radius.shape}")
+        radius = radius.reshape(-1)
         n = len(radius)
         if n == 0:
             raise ValueError("a simulation needs at least one particle")
+        # (n, 3) exactly: a transposed (3, n) array is refused, not silently reshaped
+        position = np.asarray(position, dtype=float)
         if position.shape != (n, 3):
-            raise ValueError(f"position must have shape ({n}, 3), got {position.shape}")
+            raise ValueError(f"position must have shape ({n}, 3) (one row x, y, z per particle), "
+                             f"got {position.shape}")
         if not np.all(np.isfinite(radius)) or np.any(radius <= 0):
             raise ValueError("every particle radius must be positive and finite")
         if not np.all(np.isfinite(position)):
@@ -971,7 +977,9 @@ class Simulation:
 
     # ---------------------------------------------------------------- state in / out
     def state_dict(self) -> dict:
-        """Everything needed to continue the run bit-exactly, as NumPy arrays (HDF5 layout)."""
+        """The grains, contact and bond histories and last wall forces, as NumPy arrays (HDF5
+        layout): with the simulation's time, walls and settings (not in it), everything needed
+        to continue the run bit-exactly (`load_state_dict`)."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
         n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
         d = {"particles/" + k: get(getattr(p, k), n)

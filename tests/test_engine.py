@@ -538,6 +538,13 @@ def test_same_inputs_give_the_same_numbers():
      r"velocity must have shape \(2, 3\)"),                              # was zero-padded
     (dict(fixed=[True, False]), "fixed must be 1 booleans"),
     (dict(time=float("nan")), "time must be finite"),
+    # session 42 audit: these were reshaped to (n, 3) and accepted (the transposed one as
+    # other positions), or failed in NumPy without naming the argument
+    (dict(radius=[0.001] * 4, position=np.arange(12.0).reshape(3, 4) * 0.01),
+     r"position must have shape \(4, 3\).*got \(3, 4\)"),
+    (dict(radius=[0.001] * 4, position=np.zeros((4, 2))), r"position must have shape \(4, 3\)"),
+    (dict(radius=[0.001] * 4, position=np.zeros(12)), r"position must have shape \(4, 3\)"),
+    (dict(radius=[[0.001, 0.002]], position=np.zeros((2, 3))), r"radius must be one number"),
 ])
 def test_bad_input_is_refused_with_a_named_reason(bad, message):
     args = dict(radius=[0.001], position=[[0, 0, 0]])
