@@ -140,6 +140,13 @@ def check_trace(path) -> None:
         if pathlib.Path(path).is_dir():
             raise ValueError(f"trace {path}: is a directory; give a file name, e.g. "
                              f"{pathlib.Path(path) / 'steps.csv'}")
+        import tempfile
+        try:                            # a read-only folder fails now, not after the run
+            with tempfile.TemporaryFile(dir=parent):
+                pass
+        except OSError as exc:
+            raise ValueError(f"trace {path}: cannot write into {parent}: "
+                             f"{exc.strerror or exc}") from None
 
 
 def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
@@ -287,10 +294,12 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     from .config import parse_scenario
     from .runner import plan_shears
     from .simulation import Simulation
+    from .state import MAX_SYSTEMS
+    if not 1 <= samples <= MAX_SYSTEMS:
+        raise ValueError(f"samples must be 1 to {MAX_SYSTEMS} (the systems one simulation "
+                         f"batches), got {samples}")
     _init(arch, precision)
     check_trace(trace)
-    if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
     seeds = [seed + k for k in range(samples)]
     paths = [pathlib.Path(sample.format(seed=s)) if sample else bench_sample(particles, s, tolerance)
              for s in seeds]

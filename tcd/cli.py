@@ -19,6 +19,7 @@ from pathlib import Path
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_IO = 74            # sysexits' EX_IOERR: the file system refused a read or a write
 ARCHS = ("cpu", "gpu")
 PRECISIONS = ("f64", "f32")
 COLOR_MODES = ("layer", "speed", "vx", "bond-damage")      # = tcd.render.COLOR_MODES
@@ -403,7 +404,10 @@ def median_run(run, options: dict, repeat: int) -> dict:
 
 # --- parser --------------------------------------------------------------------------------------
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
     return value
@@ -430,7 +434,10 @@ def _seed_list(text: str) -> list:
 
 
 def _positive_float(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
     return value
@@ -643,6 +650,15 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
     except (UsageError, ValueError, FileNotFoundError) as exc:
         return _error(exc)
+    except OSError as exc:
+        # the file system refused (read-only, full, a name too long, a file where a folder
+        # must be): every output is written atomically, so what was there before is intact
+        where = exc.filename if exc.filename is not None else ""
+        reason = exc.strerror or str(exc)
+        hint = ("; the files written before are intact: once this is fixed, run it again "
+                "(with --resume if it had written a checkpoint)" if args.command == "run" else "")
+        print(f"tcd: error: {where + ': ' if where else ''}{reason}{hint}", file=sys.stderr)
+        return EXIT_IO
     except RuntimeError as exc:
         from .backend import BackendUnavailable    # imported late: `tcd --help` stays instant
         if isinstance(exc, BackendUnavailable):

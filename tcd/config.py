@@ -137,7 +137,7 @@ class SolverConfig(_Model):
     sweep_order: Literal["forward", "symmetric"] = "symmetric"
     warm_start_extrapolation: float = Field(0.0, ge=0.0, le=1.0)
     alert_ratio: float = Field(0.1, gt=0)
-    gravity: float = Field(9.81, ge=0)
+    gravity: float = Field(9.81, ge=0, le=1e4)    # up to about 1000 g (a centrifuge)
     overlap_slop: float = Field(0.002, ge=0)
     projection_passes: int = Field(2, ge=0, le=10**6)
     bond_blocks: bool = True

@@ -204,7 +204,11 @@ def load_run(run_dir) -> tuple[dict | None, list[SampleCurves]]:
     if summary_path.exists():
         try:
             summary = json.loads(summary_path.read_text(encoding="utf-8"))
+            problem = _summary_problem(summary)
+            if problem:
+                raise ValueError(problem)
         except ValueError as exc:
+            summary = None
             warnings.warn(f"{summary_path}: unreadable ({exc}); using the series only",
                           FigureWarning, stacklevel=2)
     samples = []
@@ -217,6 +221,22 @@ def load_run(run_dir) -> tuple[dict | None, list[SampleCurves]]:
         raise ValueError(f"{run_dir}: no usable sample (no readable "
                          f"sample_<seed>/{SERIES_NAME}); nothing to plot")
     return summary, samples
+
+
+def _summary_problem(summary) -> str | None:
+    """What makes a parsed summary.json unusable here (None when it is usable): the shape
+    `tcd run` writes, an object whose `samples` is a list of objects and whose `mean`, `std`,
+    `experiment` and `paper_simulation` are objects, where present."""
+    if not isinstance(summary, dict):
+        return f"not a JSON object (a {type(summary).__name__})"
+    samples = summary.get("samples")
+    if samples is not None and not (isinstance(samples, list)
+                                    and all(isinstance(smp, dict) for smp in samples)):
+        return "its 'samples' is not a list of objects"
+    for key in ("mean", "std", "experiment", "paper_simulation"):
+        if summary.get(key) is not None and not isinstance(summary[key], dict):
+            return f"its {key!r} is not an object"
+    return None
 
 
 def summary_from_samples(samples: list[SampleCurves]) -> dict:
@@ -264,6 +284,8 @@ def _backend_of(run_dir: Path) -> dict | None:
     try:
         record = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict):
         return None
     return {k: record.get(k) for k in ("arch", "precision")}
 

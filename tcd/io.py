@@ -536,6 +536,33 @@ def frame_count(path) -> int:
         return len(_frame_names(f, os.fspath(path)))
 
 
+def keep_frames(path, count: int) -> int:
+    """Cut the states file `path` back to its first `count` frames (atomically: the file is
+    either as it was or cut); returns how many frames were dropped. A resumed run calls it
+    with the number of frames its checkpoint was written after, so that frames written
+    between that checkpoint and a hard kill are not written twice."""
+    path = os.fspath(path)
+    with _open_tcd(path, FILE_STATES) as f:
+        names = _frame_names(f, path)
+    if count < 0 or count > len(names):
+        raise ValueError(f"{path}: cannot keep {count} frames of {len(names)}")
+    if count == len(names):
+        return 0
+    with atomic_path(path) as tmp:
+        with h5py.File(path, "r") as src, h5py.File(tmp, "w") as dst:
+            for key, value in src.attrs.items():
+                dst.attrs[key] = value
+            for key in src:
+                if key != "frames":
+                    src.copy(src[key], dst, key)
+            frames = dst.create_group("frames")
+            for key, value in src["frames"].attrs.items():
+                frames.attrs[key] = value
+            for name in names[:count]:
+                src.copy(src["frames"][name], frames, name)
+    return len(names) - count
+
+
 def read_frame(path, index: int = -1) -> dict:
     """Frame `index` (negative counts from the end) as the flat dict it was written from.
 

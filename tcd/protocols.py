@@ -102,6 +102,10 @@ def settled(sim, speed: float) -> bool:
     return float(np.sqrt((m * (v**2).sum(axis=1)).sum() / m.sum())) < speed
 
 
+#: the largest overlap a prepared sample may keep, over its smallest diameter (issue 5: 1 %)
+MAX_SAMPLE_OVERLAP = 0.01
+
+
 class Prepare:
     """Two-course (or more) sample by pouring and vibration."""
     kind = "prepare"
@@ -271,7 +275,7 @@ class Prepare:
         # the pores of the course below (centre below its top), with the depth of the deepest
         lifts = [0.0] + tops[:-1] + [H]
         c = sim.contact_arrays()
-        return {
+        out = {
             "particles": int(sim.n),
             "particles_per_layer": [int(np.count_nonzero(layer == L)) for L in range(nl)],
             "layer_tops_mm": [1e3 * t for t in tops],
@@ -308,10 +312,12 @@ class Prepare:
                                                                          min(top, H)),
             "target_sample_height_mm": self.cfg.sample_height_mm,
             "diameter_mm": 2e3 * self.radius,
-            "warnings": self.shortfalls(phases, 1e3 * H),
         }
+        out["warnings"] = self.shortfalls(phases, 1e3 * H, out["max_overlap_ratio"], out["outside"])
+        return out
 
-    def shortfalls(self, phases, height_mm: float) -> list:
+    def shortfalls(self, phases, height_mm: float, overlap_ratio: float = 0.0,
+                   outside: int = 0) -> list:
         """Where the preparation fell short of what its scenario asked (a list of sentences,
         empty when nothing did): a pour, hold or confinement that reached its time limit before
         the grains settled (`settle_speed`), a course whose plate stopped above its target (the
@@ -334,6 +340,13 @@ class Prepare:
         if height_mm > c.sample_height_mm + slack:
             out.append(f"the sample is {height_mm:.2f} mm high, above sample_height_mm "
                        f"({c.sample_height_mm:g} mm)")
+        # the invariants of a prepared sample (issue 5): a run that diverged breaks them first
+        if not overlap_ratio <= MAX_SAMPLE_OVERLAP:
+            out.append(f"the largest overlap is {100 * overlap_ratio:.3g} % of the smallest "
+                       f"diameter, above {100 * MAX_SAMPLE_OVERLAP:g} %: the grains interpenetrate "
+                       "(a time step or gravity too large for the solver's tolerance?)")
+        if outside:
+            out.append(f"{outside} grain(s) ended outside the mould")
         return out
 
 
@@ -355,15 +368,9 @@ class Shear:
                              "or `sample = \"path/to/prepared.h5\"`)")
         c = self.cfg
         x, r = sim.positions(), sim.radii()
-        R = float(np.max([w.radius for w in sim.walls if w.kind == "cylinder"]))
-        if self.displacement >= 2 * R:
-            raise ValueError(f"shear displacement_mm {c.displacement_mm:g} mm is not smaller "
-                             f"than the sample's {2e3 * R:g} mm diameter: the upper ring would "
-                             f"leave the lower one")
-        plate = float(max(w.position(t)[2] for w in sim.walls if w.kind == "plane" and w.direction[2] < 0))
-        # the sample is confined: the top plate rests on its highest grain (vibration may have
-        # packed the grains below the mould's height; a gap would let the bonded sample jump)
-        H = min(plate, float((x[:, 2] + r).max()))
+        R, plate, H, problems = self.sample_geometry(sim.walls, x, r, t)
+        if problems:
+            raise ValueError("; ".join(problems))
         z_i = 0.5 * H
         half_gap = 0.5 * c.gap_mm * 1e-3
         f = c.wall_friction
@@ -391,6 +398,31 @@ class Shear:
         return Phase("shear", walls, steps, info={"z_interface": z_i, "radius": R, "t0": t,
                                                   "bonds_created": nb, "sample_height": H,
                                                   "mould_height": plate}), sim
+
+    def sample_geometry(self, walls, x, r, t: float):
+        """(mould radius R, top plate height, sample height H, problems) of a prepared sample
+        with these walls and grains at time `t`: what `plan` needs of a sample, checked before
+        a run starts (runner.check_samples) as well as here. The sample is confined: the top
+        plate rests on its highest grain (vibration may have packed the grains below the
+        mould's height; a gap would let the bonded sample jump)."""
+        c = self.cfg
+        moulds = [w.radius for w in walls if w.kind == "cylinder"]
+        plates = [w.position(t)[2] for w in walls if w.kind == "plane" and w.direction[2] < 0]
+        problems = []
+        if not moulds:
+            problems.append("the sample has no cylindrical mould among its walls (the rings take "
+                            "its radius)")
+        if not plates:
+            problems.append("the sample has no top plate (a plane facing down) among its walls")
+        if problems:
+            return math.nan, math.nan, math.nan, problems
+        R, plate = float(max(moulds)), float(max(plates))
+        H = min(plate, float((x[:, 2] + r).max()))
+        if self.displacement >= 2 * R:
+            problems.append(f"shear displacement_mm {c.displacement_mm:g} mm is not smaller than "
+                            f"the sample's {2e3 * R:g} mm diameter: the upper ring would leave "
+                            "the lower one")
+        return R, plate, H, problems
 
     def before_step(self, sim, phase) -> None:
         # the stage's solver settings (here, not in plan: a resumed run passes here too)
@@ -472,10 +504,17 @@ PROTOCOLS = {"prepare": Prepare, "shear": Shear}
 
 def make_simulation(scn, radius, x, layer, walls, t, cyl_radius, top, bond_law=None):
     """A Simulation for a sample in a cylinder of `cyl_radius` up to height `top`."""
-    from .simulation import Simulation
+    from .simulation import GridTooLarge, Simulation
     m = 0.01
-    return Simulation(radius, x, layer=layer, walls=walls, density=scn.material.density,
-                      friction=scn.material.friction, settings=scn.solver.to_settings(),
-                      bond_law=bond_law or scn.bond.to_law(),
-                      domain=((-cyl_radius - m, -cyl_radius - m, 0.0), (cyl_radius + m, cyl_radius + m, top)),
-                      time=t)
+    try:
+        return Simulation(radius, x, layer=layer, walls=walls, density=scn.material.density,
+                          friction=scn.material.friction, settings=scn.solver.to_settings(),
+                          bond_law=bond_law or scn.bond.to_law(),
+                          domain=((-cyl_radius - m, -cyl_radius - m, 0.0),
+                                  (cyl_radius + m, cyl_radius + m, top)),
+                          time=t)
+    except GridTooLarge as exc:
+        raise ValueError(f"{scn.source}: {exc}. The domain is the mould up to the pouring "
+                         "column's top: lower the prepare stage's "
+                         "column_height_mm or cylinder_diameter_mm, or raise its size_scale "
+                         "(larger grains)") from None

@@ -195,28 +195,50 @@ def _scenario_record(scenario) -> dict:
                                                      "description"})
 
 
+def scenario_changes(text: str, scenario, where: str) -> list:
+    """How `scenario` differs from the scenario of TOML `text` (read from `where`: a run's
+    scenario.toml or a checkpoint) in what a resumed run must share with the run it continues;
+    ValueError naming `where` if the text is not a valid scenario."""
+    from .config import ScenarioError, parse_scenario
+    try:
+        # the new scenario's source: relative sample paths resolve as they did
+        first = parse_scenario(text, scenario.source)
+    except ScenarioError as exc:
+        reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
+        raise ValueError(f"{where}: the scenario this run started with cannot be read back "
+                         f"({reasons}); resume is refused") from None
+    return io.differences(_scenario_record(first), _scenario_record(scenario))
+
+
 def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     """A new run: create `out` and keep the scenario's text (scenario.toml) and backend
     (run.json). A resumed one: refuse, before anything is written, a scenario or backend other
     than those the run started with (its samples would mix two configurations); the records
     are left as they are."""
-    from .config import ScenarioError, parse_scenario
     backend_now = {"arch": scenario.backend.arch, "precision": scenario.backend.precision,
                    "fast_math": backend.fast_math_setting(scenario.backend.arch)}
     stored = out / "scenario.toml"
-    if resume and stored.is_file():
+    if resume and not stored.is_file():
+        raise ValueError(f"{stored} is missing: a resumed run checks that it continues with the "
+                         "scenario it started with; put that scenario back there (the run's "
+                         "checkpoints are checked against it too), or start a new run in "
+                         "another --out directory")
+    if resume:
         try:
-            first = parse_scenario(stored.read_text(encoding="utf-8"), scenario.source)
-        except (ScenarioError, OSError, UnicodeDecodeError) as exc:
+            text = stored.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
             raise ValueError(f"{stored}: the scenario this run started with cannot be read "
                              f"back ({exc}); resume is refused") from None
-        changed = io.differences(_scenario_record(first), _scenario_record(scenario))
+        changed = scenario_changes(text, scenario, str(stored))
         record = out / "run.json"
         if record.is_file():
             try:
                 started = json.loads(record.read_text())
-            except (OSError, ValueError):
-                started = {}
+                if not isinstance(started, dict):
+                    raise ValueError("not a JSON object")
+            except (OSError, ValueError) as exc:
+                raise ValueError(f"{record}: the backend this run started with cannot be read "
+                                 f"back ({exc}); resume is refused") from None
             changed += [f"backend.{k}: {started[k]!r} -> {v!r} (--{k})"
                         for k, v in backend_now.items()
                         if k != "fast_math" and k in started and started[k] != v]
@@ -293,10 +315,11 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     h = scenario.solver.time_step
     if resume:
         arrays, meta = io.load_checkpoint(ck_path)
-        if meta.get("seeds") != seeds:
-            raise ValueError(f"{ck_path}: the checkpoint holds seeds {meta.get('seeds')}, "
-                             f"the scenario {seeds}")
-        batch = restore_simulation(scenario, arrays, meta)
+        check_run_checkpoint(scenario, ck_path, meta, BATCH_CHECKPOINT_KEYS, seeds=seeds)
+        batch = restore_checkpoint(scenario, ck_path, arrays, meta)
+        for seed in seeds:
+            restore_frames(dirs[seed] / "states.h5", (meta.get("frames") or {}).get(str(seed)),
+                           ck_path, seed)
         phases = [Phase.from_json(ph) for ph in meta["phases"]]
         step_in_phase, next_snapshot = meta["step_in_phase"], meta["next_snapshot"]
         results = meta["results"]
@@ -338,7 +361,9 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                 "results": results, "time": batch.time, "step": batch.step_index,
                 "walls": [w.to_dict() for w in batch.walls], "bond_law": batch.bond_law.__dict__,
                 "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
-                "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__}
+                "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__,
+                "scenario_text": scenario.text,
+                "frames": {str(seed): io.frame_count(dirs[seed] / "states.h5") for seed in seeds}}
         io.save_checkpoint(ck_path, arrays, meta)
 
     steps = phases[0].steps
@@ -516,7 +541,12 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
     next_snapshot = 0.0
     if resume and ck_path.exists():
         arrays, meta = io.load_checkpoint(ck_path)
-        sim = restore_simulation(scn, arrays, meta)
+        check_run_checkpoint(scn, ck_path, meta, SAMPLE_CHECKPOINT_KEYS, seeds=[seed])
+        if not isinstance(meta["stage"], int) or not 0 <= meta["stage"] <= len(scn.stages):
+            raise ValueError(f"{ck_path}: its stage {meta['stage']!r} is not one of the "
+                             f"scenario's {len(scn.stages)} stages")
+        sim = restore_checkpoint(scn, ck_path, arrays, meta)
+        restore_frames(states, meta.get("frames"), ck_path, seed)
         stage_idx, phase_idx, step_in_phase = meta["stage"], meta["phase_index"], meta["step_in_phase"]
         phase = Phase.from_json(meta["phase"]) if meta["phase"] else None
         series = {k.split("/", 1)[1]: list(v) for k, v in arrays.items() if k.startswith("series/")}
@@ -535,7 +565,9 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                 "phase": phase.to_json() if phase else None, "time": sim.time, "step": sim.step_index,
                 "result": result, "next_snapshot": next_snapshot, "walls": [w.to_dict() for w in sim.walls],
                 "bond_law": sim.bond_law.__dict__, "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
-                "tcd_version": __version__}
+                "tcd_version": __version__, "seed": seed, "scenario_text": scn.text,
+                # a resume cuts states.h5 back to these frames (a hard kill may have left more)
+                "frames": io.frame_count(states) if states.exists() else 0}
         io.save_checkpoint(ck_path, arrays, meta)
 
     def timed_checkpoint():
@@ -694,6 +726,65 @@ def plan_shears(scn, stage, seeds, paths) -> tuple[list, list]:
     return sims, phases
 
 
+# what a run's checkpoint meta holds (a file without them is not one: a prepared sample, ...)
+SAMPLE_CHECKPOINT_KEYS = ("stage", "phase_index", "step_in_phase", "phase", "result",
+                          "next_snapshot", "time", "walls", "domain")
+BATCH_CHECKPOINT_KEYS = ("seeds", "phases", "step_in_phase", "next_snapshot", "results",
+                         "wall_time_s", "time", "walls", "domain")
+
+
+def check_run_checkpoint(scn, ck_path, meta, keys, *, seeds) -> None:
+    """Refuse, naming the file, a checkpoint that is not a run's (`keys` missing from its
+    meta), that holds other seeds, or that a run of another scenario wrote (checkpoints
+    written before session 42 do not record their scenario or seed)."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"{ck_path}: its meta is not a JSON object: not a checkpoint of a run")
+    missing = [k for k in keys if k not in meta]
+    if missing:
+        raise ValueError(f"{ck_path}: not a checkpoint of a tcd run (its meta lacks "
+                         f"{', '.join(missing)}): put back the run's own checkpoint, or start "
+                         "the run again in a new --out directory")
+    held = meta["seeds"] if "seeds" in meta else [meta.get("seed", seeds[0])]
+    if held != seeds:
+        raise ValueError(f"{ck_path}: the checkpoint holds seeds {held}, the scenario {seeds}")
+    if "scenario_text" in meta:
+        changed = scenario_changes(str(meta["scenario_text"]), scn, str(ck_path))
+        if changed:
+            raise ValueError(f"{ck_path}: written by a run of another scenario: "
+                             f"{io.shown_differences(changed)}")
+
+
+def restore_checkpoint(scn, ck_path, arrays: dict, meta: dict):
+    """`restore_simulation` of a run's checkpoint, its problems named with the file."""
+    try:
+        io.check_state(arrays, str(ck_path), wall_slots=io.meta_wall_slots(arrays, meta))
+        return restore_simulation(scn, arrays, meta)
+    except (KeyError, TypeError, ValueError) as exc:
+        text = str(exc) if not isinstance(exc, KeyError) else f"lacks {exc.args[0]!r}"
+        raise ValueError(text if text.startswith(str(ck_path)) else
+                         f"{ck_path}: cannot restore its state: {text}") from None
+
+
+def restore_frames(states: pathlib.Path, frames, ck_path, seed: int) -> None:
+    """Cut `states` back to the `frames` it had when the checkpoint `ck_path` was written: a
+    run killed after that checkpoint (SIGKILL, a power cut) may have written later frames,
+    which the resumed run writes again. A states file with fewer frames lost some since:
+    refused, as the shear's numbers read its frames. (`frames` None: a checkpoint written
+    before session 42, which did not record it: the file is left as it is.)"""
+    if frames is None:
+        return
+    have = io.frame_count(states) if states.exists() else 0
+    if have < int(frames):
+        raise ValueError(f"{states}: {have} frames, but the checkpoint {ck_path} was written "
+                         f"after frame {int(frames)}: the states file lost frames since, and "
+                         "a resumed run would not match; restore it, or start the run again "
+                         "in a new --out directory")
+    dropped = io.keep_frames(states, int(frames)) if have else 0
+    if dropped:
+        print(f"tcd: note: seed {seed}: {states}: {dropped} frame(s) written after the last "
+              "checkpoint were dropped (the resumed run writes them again)", file=sys.stderr)
+
+
 def restore_simulation(scn, arrays: dict, meta: dict):
     from .simulation import BondLaw, Simulation
     from .walls import Wall
@@ -765,10 +856,19 @@ def read_prepared(path) -> tuple[dict, dict]:
 def check_samples(scn, seeds) -> None:
     """Read and check, for each of `seeds`, the prepared sample of every shear stage that
     starts from a file: a bad sample of the fifth seed is reported before the first starts."""
+    from .walls import Wall
     for stage in scn.stages:
         if stage.kind == "shear" and getattr(stage, "sample", ""):
             for seed in seeds:
-                read_prepared(stage.sample.format(seed=seed))
+                path = stage.sample.format(seed=seed)
+                arrays, meta = read_prepared(path)
+                # what the shear's plan needs of the sample: its mould, top plate and height
+                proto = PROTOCOLS["shear"](stage, scn, seed)
+                *_, problems = proto.sample_geometry(
+                    [Wall.from_dict(w) for w in meta["walls"]], np.asarray(arrays["particles/x"]),
+                    np.asarray(arrays["particles/radius"]), float(meta["time"]))
+                if problems:
+                    raise ValueError(f"{path} (seed {seed}): {'; '.join(problems)}")
 
 
 def load_prepared(scn, path):

@@ -269,6 +269,13 @@ def default_cell_size(radius, alert: float, margin: float) -> float:
     return float(cells[int(np.argmin(work))])
 
 
+MAX_GRID_CELLS = 64_000_000
+
+
+class GridTooLarge(ValueError):
+    """The broad phase's grid would have more than MAX_GRID_CELLS cells."""
+
+
 class Simulation:
     """Rigid spheres between kinematic walls, stepped by Contact Dynamics.
 
@@ -413,9 +420,12 @@ class Simulation:
         lo, hi = self.domain
         dims = np.maximum(1, np.ceil((hi - lo) / self.cell_size).astype(int))
         ncells = int(np.prod(dims))
-        if ncells > 64_000_000:
-            raise ValueError(f"broad-phase grid of {dims.tolist()} cells is too large: enlarge "
-                             f"cell_size or shrink the domain")
+        if ncells > MAX_GRID_CELLS:
+            ext = ", ".join(f"{1e3 * e:.4g}" for e in (np.asarray(hi) - np.asarray(lo)))
+            raise GridTooLarge(f"broad-phase grid of {dims.tolist()} cells (at most "
+                               f"{MAX_GRID_CELLS:.3g}) is too large: a domain of ({ext}) mm in "
+                               f"cells of {1e3 * self.cell_size:.4g} mm (about the largest "
+                               "grain's diameter): shrink the domain, or give a larger cell_size")
         if ncells * self.systems >= 2**31:
             raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
                              "indices: enlarge cell_size or batch fewer systems")

@@ -94,3 +94,22 @@ def test_a_trace_into_a_missing_folder_is_refused_before_the_run(tmp_path, monke
                    **on_backend)
     with pytest.raises(ValueError, match="is a directory; give a file name"):
         bench.pour(particles=60, time=0.02, trace=str(tmp_path), **on_backend)
+
+
+def test_a_shear_batch_beyond_the_systems_of_one_simulation_is_refused_at_once(monkeypatch,
+                                                                             on_backend):
+    """--samples 65 prepared every sample (minutes) before the batch refused it (session 42
+    audit); now the count is checked before anything is made."""
+    monkeypatch.setattr(bench, "bench_sample", lambda *a, **k: pytest.fail("a sample was made"))
+    from tcd.state import MAX_SYSTEMS
+    with pytest.raises(ValueError, match=f"samples must be 1 to {MAX_SYSTEMS}"):
+        bench.shear(particles=50, time=0.001, samples=MAX_SYSTEMS + 1, **on_backend)
+
+
+def test_a_trace_into_a_folder_that_cannot_be_written_is_refused_before_the_run(tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("a file")
+    with pytest.raises(FileNotFoundError, match="no such directory"):
+        bench.check_trace(str(blocker / "t.csv"))
+    with pytest.raises(ValueError, match="cannot write into /proc"):
+        bench.check_trace("/proc/t.csv")

@@ -563,12 +563,29 @@ def test_frame_with_an_animation_output_is_refused(tmp_path, capsys):
 def test_shear_of_a_sample_file_farther_than_its_diameter_is_refused(tmp_path, capsys):
     """The mould's diameter of a sample file is known once the file is read: a displacement
     at least as large (the upper ring would leave the lower one) stops the run with one line
-    naming the key, before any step."""
+    naming the key and the file, before anything is written (since session 42, when every
+    seed's sample is checked before the first runs)."""
     scenario = tmp_path / "far.toml"
     scenario.write_text(f'name = "far"\n[[stage]]\nkind = "shear"\nsample = "{SAMPLE}"\n'
                         'displacement_mm = 200.0\nvelocity_mm_per_min = 60000.0\n')
     assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
-    assert "tcd: error: shear displacement_mm 200 mm is not smaller than the sample's 150 mm " \
-           "diameter" in err and "Traceback" not in err, err
-    assert not (tmp_path / "out" / "sample_1" / "shear_series.h5").exists()
+    assert f"tcd: error: {SAMPLE} (seed 1): shear displacement_mm 200 mm is not smaller than " \
+           "the sample's 150 mm diameter" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_grid_too_large_for_the_grains_names_the_scenario_keys_to_change(tmp_path, capsys):
+    """Tiny grains in a tall, wide column make a broad-phase grid of 2e10 cells: the refusal
+    named `cell_size`, which no scenario has (session 42 audit); it now names the keys."""
+    text = (ROOT / "scenarios" / "tiny.toml").read_text()
+    for key, value in (("size_scale", "0.01"), ("column_height_mm", "2000.0"),
+                       ("cylinder_diameter_mm", "100.0"), ("particles_per_layer", "20")):
+        text, n = __import__("re").subn(rf"(?m)^{key} = .*$", f"{key} = {value}", text)
+        assert n == 1, key
+    scenario = tmp_path / "fine.toml"
+    scenario.write_text(text)
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"tcd: error: {scenario}: broad-phase grid of" in err and "Traceback" not in err
+    assert "column_height_mm or cylinder_diameter_mm, or raise its size_scale" in err

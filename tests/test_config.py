@@ -288,6 +288,7 @@ def test_time_step_must_be_positive_and_finite(tmp_path, value):
     ("[solver]", "max_sweeps", "4294967297", "solver.max_sweeps"),  # wrapped to 1 in the kernel
     ("[solver]", "check_every", "4294967297", "solver.check_every"),
     ("[material]", "density", "1e308", "material.density"),
+    ("[solver]", "gravity", "1e30", "solver.gravity"),   # ran, diverged, and exited 0 (session 42)
 ])
 def test_values_beyond_sane_physics_or_32_bit_kernels_are_refused(tmp_path, section, key, value,
                                                                    where):

@@ -172,6 +172,22 @@ def test_make_figures_skips_samples_without_series(tmp_path):
     assert "0.850" in md and "2.20" in md and "one sample" in md and "±" not in md
 
 
+@pytest.mark.parametrize("text, why", [("[]", "not a JSON object"),
+                                       ('{"samples": "x"}', "'samples' is not a list"),
+                                       ('{"mean": [1, 2]}', "'mean' is not an object")])
+def test_a_summary_of_the_wrong_shape_is_set_aside_with_a_warning(tmp_path, text, why):
+    """Valid JSON that is not a run's summary (a list; samples as a string) stopped `tcd
+    figures` with an AttributeError (session 42 audit); now it is read as an unreadable one."""
+    run = tmp_path / "run"
+    _write_sample(run, 5, 0.85e6, 2.2e-3)
+    (run / "summary.json").write_text(text)
+    out = tmp_path / "out"
+    with pytest.warns(FigureWarning, match=f"summary.json: unreadable .*{why}"):
+        written = make_figures(run, out)
+    assert (out / "fig4_stress_displacement.png") in written
+    assert "0.850" in (out / "table2.md").read_text()
+
+
 def test_make_figures_without_usable_series_names_the_directory(tmp_path):
     run = tmp_path / "empty_run"
     (run / "sample_1").mkdir(parents=True)

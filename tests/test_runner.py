@@ -563,6 +563,103 @@ def test_run_into_a_file_is_refused_before_anything_is_written(tmp_path, capsys)
     assert target.read_bytes() == b"an image"
 
 
+def test_an_output_the_file_system_refuses_is_a_one_line_error(tmp_path, capsys):
+    """An OSError on an output (a folder under a file here; a read-only or full disk, a name
+    too long) was a Python traceback (session 42 audit): now one line naming the path."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("a file")
+    scenario = tmp_path / "micro.toml"
+    scenario.write_text(MICRO)
+    assert run_tcd(["run", str(scenario), "--out", str(blocker / "out")]) == 74
+    err = capsys.readouterr().err
+    assert err.startswith("tcd: error: ") and "Traceback" not in err
+    assert str(blocker) in err and "run it again" in err
+    assert blocker.read_text() == "a file"
+
+
+def _frame_times(path):
+    return [io.read_frame(path, k)["time"] for k in range(io.frame_count(path))]
+
+
+def test_resume_after_a_hard_kill_cuts_the_frames_written_after_the_checkpoint(micro_run, tmp_path,
+                                                                              monkeypatch, capsys):
+    """A run killed hard (SIGKILL, a power cut) after writing frames past its last checkpoint
+    wrote them again when resumed: states.h5 held frames twice, its time running backwards
+    (session 42 audit). The checkpoint now records the frames written; a resume cuts the file
+    back to them, and the run ends with the frames of an uninterrupted one. A resume whose
+    checkpoint is not this run's, or whose states file or scenario record went missing, is
+    refused with the file named."""
+    import shutil
+    from tcd.simulation import Simulation
+    _, out = micro_run
+    text = _shear_only((out / "sample_3" / "prepared.h5").as_posix())
+    text = text.replace("snapshot_every = 0.05", "snapshot_every = 0.002")
+    text = text.replace("checkpoint_every_s = 0.5", "checkpoint_every_s = 1e6")
+    scenario = tmp_path / "shear.toml"
+    scenario.write_text(text)
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "whole")]) == 0
+    whole = _frame_times(tmp_path / "whole" / "sample_3" / "states.h5")
+    assert len(whole) > 6
+
+    real_step, calls = Simulation.step, {"n": 0}
+
+    def step_then_ctrl_c(self, count=1):
+        calls["n"] += 1
+        if calls["n"] == 15:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_step(self, count)
+    monkeypatch.setattr(Simulation, "step", step_then_ctrl_c)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "cut")]) == 130
+    finally:
+        signal.signal(signal.SIGINT, outer)
+    monkeypatch.setattr(Simulation, "step", real_step)
+    cut = tmp_path / "cut"
+    shutil.copytree(cut, tmp_path / "pristine")
+    states = cut / "sample_3" / "states.h5"
+    _, meta = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")
+    assert meta["frames"] == io.frame_count(states) and meta["seed"] == 3
+    # what a hard kill leaves: frames of later steps, past the checkpoint
+    last = {k: v for k, v in io.read_frame(states, -1).items() if k not in ("time", "step", "stage")}
+    for k in (1, 2):
+        io.append_frame(states, last, time=meta["time"] + k * 0.002, step=meta["step"] + 4 * k,
+                        stage="shear")
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(cut), "--resume"]) == 0
+    assert "2 frame(s) written after the last checkpoint were dropped" in capsys.readouterr().err
+    assert _frame_times(states) == whole
+    a = io.read_series(tmp_path / "whole" / "sample_3" / "shear_series.h5")
+    b = io.read_series(cut / "sample_3" / "shear_series.h5")
+    assert np.array_equal(a["shear_stress"], b["shear_stress"])
+
+    def refused(name, spoil, message):
+        run = tmp_path / name
+        shutil.copytree(tmp_path / "pristine", run)
+        spoil(run)
+        capsys.readouterr()
+        assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 2, name
+        err = capsys.readouterr().err
+        assert __import__("re").search(message, err), (name, err)
+        assert not (run / "summary.json").exists(), name
+
+    refused("no_states", lambda run: (run / "sample_3" / "states.h5").unlink(),
+            r"states.h5: 0 frames, but the checkpoint .* was written after frame \d+")
+    refused("a_sample", lambda run: shutil.copy(out / "sample_3" / "prepared.h5",
+                                                run / "sample_3" / "checkpoint.h5"),
+            r"checkpoint.h5: not a checkpoint of a tcd run \(its meta lacks stage")
+    refused("no_record", lambda run: (run / "scenario.toml").unlink(),
+            r"scenario.toml is missing")
+
+    def foreign(run):
+        ck = run / "sample_3" / "checkpoint.h5"
+        arrays, meta = io.load_checkpoint(ck)
+        meta["scenario_text"] = meta["scenario_text"].replace("[solver]\n", "[material]\nfriction = 0.3\n[solver]\n", 1)
+        io.save_checkpoint(ck, arrays, meta)
+    refused("foreign", foreign, r"checkpoint.h5: written by a run of another scenario: "
+                                r"material.friction: 0.3 -> 0.7")
+
+
 def test_a_shear_starts_only_from_an_unbonded_prepared_sample(micro_run, tmp_path):
     """A finished run's checkpoint.h5 (after its shear) was accepted as a prepared sample and
     sheared a second time."""
@@ -625,8 +722,16 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
                         r"key 'particles/f_ext' has shape \(\d+, 3\)"),
         "bad_contact": ({**arrays, "contacts/i": arrays["contacts/i"] + len(arrays["particles/x"])},
                         r"key 'contacts/i' has indices in \[\d+, \d+\], expected \[0, \d+\)"),
+        # what the shear's plan needs of the walls (session 42 audit: these stopped the study
+        # when that seed's turn came, one with a NumPy message naming neither file nor seed)
+        "no_mould": (arrays, r"\(seed 4\): the sample has no cylindrical mould",
+                     {**meta, "walls": [w for w in meta["walls"] if w["kind"] != "cylinder"]}),
+        "narrow_mould": (arrays, r"\(seed 4\): shear displacement_mm 0.2 mm is not smaller than "
+                                 r"the sample's 0.2 mm diameter",
+                         {**meta, "walls": [{**w, "radius": 1e-4} if w["kind"] == "cylinder" else w
+                                            for w in meta["walls"]]}),
     }
-    for name, (bad, message) in cases.items():
+    for name, (bad, message, *bad_meta) in cases.items():
         path = tmp_path / "s_4.h5"
         path.unlink(missing_ok=True)
         if bad is None:
@@ -634,7 +739,7 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
             with h5py.File(path, "w") as f:
                 f["x"] = np.zeros(3)
         else:
-            io.save_checkpoint(path, bad, meta)
+            io.save_checkpoint(path, bad, bad_meta[0] if bad_meta else meta)
         scenario = tmp_path / f"{name}.toml"
         scenario.write_text(_shear_only((tmp_path / "s_{seed}.h5").as_posix(), "[3, 4]"))
         run_dir = tmp_path / f"run_{name}"
@@ -683,6 +788,12 @@ def test_preparation_shortfalls_are_named():
     assert "the sample is 8.50 mm high, above sample_height_mm (8 mm)" in found[3]
     # records of runs before `settled` was kept say nothing either way
     assert proto.shortfalls([{"phase": "pour", "layer": 0, "steps": 600}], 8.0) == []
+    # the invariants a diverged run breaks first (session 42: gravity 1e30 exited quietly)
+    assert proto.shortfalls([], 8.0, 0.0099, 0) == []
+    found = proto.shortfalls([], 8.0, 2.51, 4)
+    assert "the largest overlap is 251 % of the smallest diameter, above 1 %" in found[0]
+    assert "4 grain(s) ended outside the mould" in found[1] and len(found) == 2
+    assert "above 1 %" in proto.shortfalls([], 8.0, float("nan"), 0)[0]
 
 
 def test_a_run_records_whether_each_settling_phase_settled(micro_run):
