@@ -135,6 +135,17 @@ UNITS = {"time": "s", "normal_force_mean": "N", "normal_force_max": "N",
          **{f"stress_{name}": "Pa" for name, _, _ in COMPONENTS}}
 
 
+def _is_analysis(path) -> bool:
+    """Whether the HDF5 file at `path` is an output of `analyse` (its root attributes; files
+    written before session 42 lack `analysis` but have `source` and `stages`)."""
+    import h5py
+    try:
+        with h5py.File(path, "r") as f:
+            return "analysis" in f.attrs or ("source" in f.attrs and "stages" in f.attrs)
+    except OSError:
+        return False
+
+
 def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -> list[str]:
     """Write PREFIX.h5 and PREFIX.csv (one row per frame); return their paths."""
     if time_step is not None and not (time_step > 0 and math.isfinite(time_step)):
@@ -146,12 +157,20 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
     directory = os.path.dirname(os.path.abspath(prefix))
     if not os.path.isdir(directory):
         raise ValueError(f"{prefix}: directory {directory} does not exist")
+    if not os.path.basename(prefix):
+        raise ValueError(f"--out {out_prefix!r}: give a file name prefix (PREFIX.h5 and "
+                         "PREFIX.csv are written)")
     h5, csv = prefix + ".h5", prefix + ".csv"
     source = os.path.realpath(os.fspath(path))
     for target in (h5, csv):
         if os.path.realpath(target) == source:
             raise ValueError(f"--out {out_prefix}: would overwrite the file being analysed "
                              f"({path}); choose another prefix")
+    # an earlier analysis is replaced; any other file (a run's shear_series.h5 and .csv) is not
+    if os.path.exists(h5) and not _is_analysis(h5) or os.path.exists(csv) and not os.path.exists(h5):
+        raise ValueError(f"--out {out_prefix}: {h5 if os.path.exists(h5) else csv} exists and "
+                         "is not an output of tcd analyse (a run's series?); choose another "
+                         "prefix, or remove it")
     states, h = load_states(path, frames)
     if time_step is not None:
         if h is not None and not math.isclose(float(time_step), h, rel_tol=1e-12):
@@ -171,6 +190,7 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
     keys = ["frame"] + list(rows[0])
     series = {k: series[k] for k in keys}
     io.write_series(h5, series, units=UNITS, csv_path=csv,
-                    attrs={"source": os.fspath(path), "time_step": h if h is not None else "unknown",
+                    attrs={"analysis": "tcd analyse", "source": os.fspath(path),
+                           "time_step": h if h is not None else "unknown",
                            "stages": [str(frame["stage"]) for frame in states]})
     return [h5, csv]

@@ -153,6 +153,21 @@ def test_cli_analyse(tmp_path, capsys):
     assert "m.csv" in capsys.readouterr().out
     assert cli.main(["analyse", str(path), "--out", str(tmp_path / "m"), "--time-step", "0"]) == 2
     assert cli.main(["analyse", str(tmp_path / "x.h5"), "--out", str(tmp_path / "m")]) == 2
+    # an earlier analysis is replaced (above); a run's series is not, nor an empty prefix
+    # (session 42 audit: it replaced a run's shear_series.h5 and .csv, and wrote ".h5")
+    capsys.readouterr()
+    io.write_series(tmp_path / "shear_series.h5", {"time": np.arange(3.0)},
+                    csv_path=tmp_path / "shear_series.csv")
+    before = (tmp_path / "shear_series.h5").read_bytes()
+    assert cli.main(["analyse", str(path), "--out", str(tmp_path / "shear_series"),
+                     "--time-step", "2e-4"]) == 2
+    assert "shear_series.h5 exists and is not an output of tcd analyse" in capsys.readouterr().err
+    assert (tmp_path / "shear_series.h5").read_bytes() == before
+    (tmp_path / "shear_series.h5").unlink()
+    assert cli.main(["analyse", str(path), "--out", str(tmp_path / "shear_series"),
+                     "--time-step", "2e-4"]) == 2           # its CSV twin alone is kept too
+    assert cli.main(["analyse", str(path), "--out", str(tmp_path) + "/", "--time-step", "2e-4"]) == 2
+    assert "give a file name prefix" in capsys.readouterr().err
 
 
 def test_the_shipped_sample_at_rest_obeys_the_virial_theorem():
