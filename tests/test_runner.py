@@ -519,6 +519,19 @@ def test_resume_refuses_a_scenario_or_backend_other_than_the_run_started_with(mi
     assert run_tcd(["run", str(same), "--out", str(run), "--resume", "--precision", other]) == 2
     assert f"backend.precision: '{mine}' -> '{other}'" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    # damaged records are named as such (session 42 audit: a malformed scenario.toml was
+    # reported under the new scenario's name; an unreadable run.json as a fast-math change)
+    for name, damage, message in (("scenario.toml", "[solver\n", "scenario.toml: the scenario this "
+                                   "run started with cannot be read back (line 1, column 8: "
+                                   "malformed TOML"),
+                                  ("run.json", "{", "run.json: the backend this run started with "
+                                   "cannot be read back")):
+        kept = (run / name).read_bytes()
+        (run / name).write_text(damage)
+        assert run_tcd(["run", str(same), "--out", str(run), "--resume"]) == 2, name
+        err = capsys.readouterr().err
+        assert message in err and "fast_math" not in err, (name, err)
+        (run / name).write_bytes(kept)
     assert run_tcd(["run", str(same), "--out", str(run), "--resume"]) == 0
     assert (run / "scenario.toml").read_text() == MICRO       # the record is the first one
 
