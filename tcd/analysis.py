@@ -5,7 +5,10 @@ prepared sample or checkpoint; see export.load_states) and writes one row per fr
 PREFIX.h5 (a tcd series file, units on every dataset) and PREFIX.csv:
 
   particles, contacts (particle pairs), wall_contacts, bonds_intact, bonds_broken
-  coordination_contacts = 2 contacts / particles; coordination_bonds = 2 bonds_intact / particles
+  coordination_contacts = 2 contacts / particles (every listed pair: within the alert distance);
+  coordination_contacts_force_carrying = the same over the contacts that pressed their grains
+  together over the last step (observables.carries_force);
+  coordination_bonds = 2 bonds_intact / particles
   normal_force_mean, normal_force_max (N): over the particle contacts in compression
       (R.n > 0; n along the line of centres), force = impulse / H
   stress_xx ... stress_xy (Pa): mean stress inside the grains, Love-Weber
@@ -32,6 +35,7 @@ import sys
 import numpy as np
 
 from . import io
+from . import observables as obs
 from .export import load_states
 
 COMPONENTS = (("xx", 0, 0), ("yy", 1, 1), ("zz", 2, 2), ("yz", 1, 2), ("xz", 0, 2), ("xy", 0, 1))
@@ -111,6 +115,8 @@ def frame_row(frame, h: float | None) -> dict:
            "contacts": len(ci), "wall_contacts": wall_contacts, "bonds_intact": len(bi),
            "bonds_broken": int(np.count_nonzero(state != io.BOND_INTACT)),
            "coordination_contacts": 2.0 * len(ci) / n if n else 0.0,
+           "coordination_contacts_force_carrying": obs.coordination_number(
+               ci, cj, n, obs.carries_force(ci, cj, cimp, x)),
            "coordination_bonds": 2.0 * len(bi) / n if n else 0.0}
     if h is not None:
         d = x[cj] - x[ci]

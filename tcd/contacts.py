@@ -70,11 +70,13 @@ def bucket_of(g: ti.template(), linear):
 
 
 @ti.func
-def reach(p: ti.template(), i, h):
+def reach(p: ti.template(), i, h, accel):
     """How far sphere i can travel over the coming step (m): contacts are built for every pair
     that may touch by the end of the step, not only for those already within the alert distance,
-    so fast grains cannot pass through each other between two detections."""
-    return h * (p.v[i].norm() + 9.81 * h)
+    so fast grains cannot pass through each other between two detections. `accel`: the
+    gravity's magnitude (m/s^2; the 9.81 of every run before session 42, when it was a
+    constant), to which grain i's external force over its mass is added."""
+    return h * (p.v[i].norm() + (accel + p.f_ext[i].norm() * p.inv_mass[i]) * h)
 
 
 @ti.func
@@ -243,12 +245,13 @@ MARGIN_USE = 1.0 - 1e-6
 
 
 @ti.kernel
-def neighbour_margins(p: ti.template(), nb: ti.template(), half_skin: float, h: float):
+def neighbour_margins(p: ti.template(), nb: ti.template(), half_skin: float, h: float,
+                      accel: float):
     """Each particle's margin for a new list: half the skin, or three times its reach over
     the coming step for a fast grain (a list that lasts it about two steps)."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
-        nb.margin[i] = ti.max(half_skin, 3.0 * reach(p, i, h))
+        nb.margin[i] = ti.max(half_skin, 3.0 * reach(p, i, h, accel))
 
 
 @ti.kernel
@@ -298,7 +301,7 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_a
 
 
 @ti.kernel
-def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float) -> ti.i32:
+def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float, accel: float) -> ti.i32:
     """1 when some particle's distance moved since the list was built plus its reach over
     the coming step exceeds its margin: a pair missing from the list could then touch. While
     none does, a pair outside the list (gap at the build >= alert + both margins) still has
@@ -306,14 +309,14 @@ def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float) -> ti.i3
     nb.stale[None] = 0
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
-        if (p.x[i] - nb.x_ref[i]).norm() + reach(p, i, h) > MARGIN_USE * nb.margin[i]:
+        if (p.x[i] - nb.x_ref[i]).norm() + reach(p, i, h, accel) > MARGIN_USE * nb.margin[i]:
             nb.stale[None] = 1
     return nb.stale[None]
 
 
 @ti.kernel
 def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
-                 ct: ti.template(), alert: float, h: float, fill: ti.template()):
+                 ct: ti.template(), alert: float, h: float, accel: float, fill: ti.template()):
     """Each particle's contact candidates from its neighbour list: partners j whose gap is
     below the alert distance plus both reaches (may touch by the end of the step) and not
     held by an intact bond, then the walls within reach. Counts them (`fill` False, into
@@ -325,10 +328,10 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
         if ti.static(fill):
             base = ct.start[i]
         m = 0
-        reach_i = reach(p, i, h)
+        reach_i = reach(p, i, h, accel)
         for s in range(nb.start[i], nb.start[i + 1]):
             j = nb.j[s]
-            if pair_gap(p, i, j) < alert + reach_i + reach(p, j, h):
+            if pair_gap(p, i, j) < alert + reach_i + reach(p, j, h, accel):
                 if bond_state(bd, i, j) != BOND_INTACT:
                     if ti.static(fill):
                         ct.j[base + m] = j
@@ -346,12 +349,12 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
             ct.count[i] = m
 
 
-def contact_count(p, wl, nb, bd, ct, alert: float, h: float) -> None:
-    contact_pass(p, wl, nb, bd, ct, alert, h, False)
+def contact_count(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:
+    contact_pass(p, wl, nb, bd, ct, alert, h, accel, False)
 
 
-def contact_fill(p, wl, nb, bd, ct, alert: float, h: float) -> None:
-    contact_pass(p, wl, nb, bd, ct, alert, h, True)
+def contact_fill(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:
+    contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
 
 
 @ti.kernel

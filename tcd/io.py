@@ -846,7 +846,12 @@ def _info_sample(ds: dict) -> list[str]:
              f"  outside the mould: {outside} (by more than 1 % of the smallest diameter)"]
     if "contacts/gap" in ds and "contacts/j" in ds:
         gap, j = _read(ds["contacts/gap"]), _read(ds["contacts/j"])
-        lines.append(f"  contacts: {len(gap)}, coordination {obs.coordination_number(None, j, len(x)):.2f}, "
-                     f"largest overlap {100 * obs.max_overlap(gap) / (2 * r.min()):.2f} % of the "
-                     f"smallest diameter")
+        loaded = ""
+        if "contacts/i" in ds and "contacts/impulse" in ds:
+            z = obs.coordination_number(None, j, len(x), obs.carries_force(
+                _read(ds["contacts/i"]), j, _read(ds["contacts/impulse"]), x))
+            loaded = f" ({z:.2f} carrying a force)"
+        lines.append(f"  contacts: {len(gap)}, coordination {obs.coordination_number(None, j, len(x)):.2f}"
+                     f"{loaded}, largest overlap {100 * obs.max_overlap(gap) / (2 * r.min()):.2f} % "
+                     f"of the smallest diameter")
     return lines

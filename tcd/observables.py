@@ -91,10 +91,31 @@ def layer_interface(x, r, layer, lower: int, upper: int) -> float:
     return 0.5 * (a + b)
 
 
-def coordination_number(i, j, n: int) -> float:
-    """Mean number of particle-particle contacts per particle (walls excluded)."""
-    pp = np.count_nonzero(np.asarray(j) < n)
-    return 2.0 * pp / n if n else 0.0
+def carries_force(i, j, impulse, x) -> np.ndarray:
+    """Which contacts carried a force over the last step: particle-particle contacts whose
+    impulse on j (global, as `Simulation.contact_arrays` and the states files give it) has a
+    positive component along x_j - x_i, the two grains pressed together (a Coulomb contact
+    with no normal impulse has none at all). Wall contacts (j >= n) are False."""
+    i, j = np.asarray(i, dtype=np.int64), np.asarray(j, dtype=np.int64)
+    x = np.asarray(x, dtype=float)
+    pp = j < len(x)
+    out = np.zeros(len(j), bool)
+    branch = x[j[pp]] - x[i[pp]]
+    out[pp] = np.einsum("ki,ki->k", np.asarray(impulse, dtype=float).reshape(-1, 3)[pp], branch) > 0.0
+    return out
+
+
+def coordination_number(i, j, n: int, loaded=None) -> float:
+    """Mean number of particle-particle contacts per particle (walls excluded), 2 C / n.
+
+    Without `loaded`: every listed contact, i.e. every pair within the alert distance
+    (touching or not; 5.01 on the shipped seed-1 sample). With `loaded` (`carries_force`'s
+    mask): only the contacts that carried a force over the last step, the coordination number
+    of granular mechanics (4.01 there; rattlers are counted in n)."""
+    pp = np.asarray(j) < n
+    if loaded is not None:
+        pp &= np.asarray(loaded, bool)
+    return 2.0 * np.count_nonzero(pp) / n if n else 0.0
 
 
 def max_overlap(gap) -> float:

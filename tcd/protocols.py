@@ -298,7 +298,11 @@ class Prepare:
                 1e3 * max(0.0, tops[L - 1] - float(x[layer == L, 2].min())) if np.any(layer == L) else 0.0
                 for L in range(1, nl)],
             "packing_fraction": obs.packing_fraction(x, r, self.radius, 0.0, H),
+            # pairs within the alert distance per particle (what sessions 1-41 reported), and
+            # the contacts that carried a force over the last step (granular mechanics' Z)
             "coordination_number": obs.coordination_number(c["i"], c["j"], sim.n),
+            "coordination_number_force_carrying": obs.coordination_number(
+                c["i"], c["j"], sim.n, obs.carries_force(c["i"], c["j"], c["impulse"], x)),
             "max_overlap_ratio": obs.max_overlap(c["gap"]) / (2 * float(r.min())),
             # a sphere is outside when it pokes through a wall by more than 1 % of d_min
             "outside": obs.outside(x, r, self.radius, 0.0, H),

@@ -719,28 +719,32 @@ class Simulation:
         put(self.stats.sys_residual, np.full(self.systems, residual))
         return ncol
 
+    def _reach_accel(self) -> float:
+        """The gravity's magnitude, for each grain's reach over a step (contacts.reach)."""
+        return float(np.linalg.norm(self.settings.gravity))
+
     def _build_contacts(self) -> None:
         p, wl, bd = self.particles, self.wall_fields, self.bonds
-        h = self.settings.time_step
-        if not self._neighbours_valid or ck.neighbour_list_stale(p, self.neighbours, h):
+        h, a = self.settings.time_step, self._reach_accel()
+        if not self._neighbours_valid or ck.neighbour_list_stale(p, self.neighbours, h, a):
             self._build_neighbours()
         while True:
             ct = self.contacts
-            ck.contact_count(p, wl, self.neighbours, bd, ct, self.alert, h)
+            ck.contact_count(p, wl, self.neighbours, bd, ct, self.alert, h, a)
             total = ck.exclusive_scan(ct.count, ct.start, self.n)
             if total <= ct.capacity:
                 break
             self._resize_contacts(int(total * 1.5) + 16)
         ct.total[None] = total
-        ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h)
+        ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h, a)
 
     def _build_neighbours(self) -> None:
         """A new neighbour list (contacts.neighbour_pass): the grid walked with each particle's
         box enlarged by half the alert distance plus its margin."""
         p = self.particles
-        h = self.settings.time_step
+        h, a = self.settings.time_step, self._reach_accel()
         half_alert = 0.5 * self.alert
-        ck.neighbour_margins(p, self.neighbours, self._half_skin, h)
+        ck.neighbour_margins(p, self.neighbours, self._half_skin, h, a)
         while True:
             g = self.grid
             ck.grid_count(p, g, self.neighbours, half_alert)
@@ -764,7 +768,7 @@ class Simulation:
             self.grow_events.append(f"neighbour pairs {nb.capacity} -> {capacity}")
             release(nb)
             self.neighbours = acquire(Neighbours, capacity, p.capacity)
-            ck.neighbour_margins(p, self.neighbours, self._half_skin, h)
+            ck.neighbour_margins(p, self.neighbours, self._half_skin, h, a)
         nb.total[None] = total
         ck.neighbour_pass(p, self.grid, nb, half_alert, True)
         self._neighbours_valid = True

@@ -106,6 +106,7 @@ def test_fabric_of_an_isotropic_network_and_the_counts():
     assert row["fabric_anisotropy"] == pytest.approx(0.0, abs=1e-12)
     assert (row["contacts"], row["wall_contacts"]) == (6, 1)
     assert row["coordination_contacts"] == pytest.approx(12 / 7)
+    assert row["coordination_contacts_force_carrying"] == pytest.approx(12 / 7)   # all pressed
     # forces (R.n / H, n from i to j): five pairs pressed at 5 N, the one below (j = 6, at -z,
     # R = -3e-3 z) at 15 N
     assert row["normal_force_mean"] == pytest.approx((5 * 5.0 + 15.0) / 6)

@@ -161,6 +161,22 @@ def test_bond_breaks_in_tension_at_yield_force_then_separates():
     assert sim.velocities()[1, 0] > 0
 
 
+def test_compression_beyond_the_yield_force_never_breaks_a_bond():
+    """PHYSICS.md section 5: a bond yields in tension (sigma = F_n / A > sigma_y, tension
+    positive) or in shear; compression is carried by the grains. Pressed at three times the
+    yield force for 0.2 s, the bond stays intact (a test of |F_n| against sigma_y A would
+    break it at once; the shear test presses at 0.9 F_y only, and cannot tell)."""
+    r_small, h = 0.001, 2e-4
+    sim = pair(0.004, r_small, h=h)
+    f_yield = SIGMA_Y * math.pi * r_small**2
+    sim.set_external_force([[0, 0, 0], [-3 * f_yield, 0, 0]])     # presses j on i
+    sim.step(1000)
+    assert sim.bonds_intact_count() == 1
+    assert sim.state_dict()["bonds/state"][0] == 0
+    # the bond carried the push, creeping by the Burgers law: closing F J(t)
+    assert -bond_gap(sim) == pytest.approx(3 * f_yield * J(1000 * h), rel=0.02)
+
+
 @pytest.mark.parametrize("mu", [0.7, 0.3])
 def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol, mu):
     """A bond breaks in shear at the yield force; its pair then slides on the Coulomb cone of

@@ -678,3 +678,72 @@ def test_a_wall_from_an_older_file_keeps_the_edges_it_ran_with():
     assert walls.Wall.from_dict(ring.to_dict()) == ring
     with pytest.raises(ValueError, match="unknown edges 'round'"):
         walls.cylinder((0, 0, 0), (0, 0, 1), 0.075, (0.0, 0.06), edges="round")
+
+
+@pytest.mark.parametrize("push", ["gravity", "force"])
+def test_a_grain_driven_hard_finds_the_grain_it_reaches_within_one_step(push):
+    """Contacts are built for every pair that may touch by the end of the step: each grain's
+    reach is h (|v| + a h). Until session 42 `a` was a constant 9.81 m/s^2, whatever the
+    scenario's gravity or the grain's external force: a grain at rest 0.15 mm above a fixed one
+    under 5000 m/s^2 (0.2 mm of fall in a step of 2e-4 s, beyond the 0.1 mm alert distance)
+    was not a candidate and sank 0.05 mm into it. Now it lands on it: the pair is listed, and
+    the step ends with the grains touching, the gap at 0 within rounding."""
+    r, a, h = 1e-3, 5000.0, 2e-4
+    gap0 = 0.15e-3
+    x = [[0.0, 0.0, 0.0], [0.0, 0.0, 2 * r + gap0]]
+    g = (0.0, 0.0, -a) if push == "gravity" else (0.0, 0.0, 0.0)
+    sim = Simulation([r, r], x, fixed=[True, False],
+                     settings=tight(time_step=h, gravity=g, overlap_slop=0.0),
+                     domain=((-0.01, -0.01, -0.01), (0.01, 0.01, 0.01)))
+    if push == "force":
+        mass = 2600.0 * 4.0 / 3.0 * math.pi * r**3
+        sim.set_external_force([[0.0, 0.0, 0.0], [0.0, 0.0, -a * mass]])
+    rec = sim.step()
+    assert rec.contacts == 1
+    gap = np.linalg.norm(np.diff(sim.positions(), axis=0)) - 2 * r
+    tol = 1e-9 if backend.precision() == "f64" else 1e-6
+    assert abs(gap) < tol * 1e3 * r, gap
+    # it covers the gap in the step and no more (Signorini on the end-of-step gap): v = -g0 / h
+    assert sim.velocities()[1, 2] == pytest.approx(-gap0 / h, rel=1e3 * tol)
+
+
+@pytest.mark.parametrize("theta", [0.5, 0.75, 1.0])
+def test_the_theta_scheme_in_free_fall_and_at_rest(theta, tol):
+    """Moreau-Jean's theta scheme (PHYSICS.md section 1): x+ = x- + H (theta v+ + (1 - theta)
+    v-). In free fall from rest, after k steps v = -g H k and x = x0 - g H^2 (k (k + 1) / 2 -
+    (1 - theta) k): the exact parabola at theta = 1/2. At rest on a plane the contact still
+    carries m g H per step and the sphere stays put, whatever theta (every other test runs
+    theta = 1)."""
+    r, h, k = 0.004, 1e-3, 40
+    fall = Simulation([r], [[0, 0, 1.0]], settings=tight(theta=theta, time_step=h),
+                      domain=((-0.01, -0.01, 0.0), (0.01, 0.01, 1.1)))
+    fall.step(k)
+    assert fall.velocities()[0, 2] == pytest.approx(-G * h * k, rel=tol)
+    z = 1.0 - G * h**2 * (k * (k + 1) / 2 - (1 - theta) * k)
+    assert fall.positions()[0, 2] == pytest.approx(z, rel=tol)
+    if theta == 0.5:
+        assert fall.positions()[0, 2] == pytest.approx(1.0 - 0.5 * G * (k * h) ** 2, rel=tol)
+    rest = Simulation([r], [[0, 0, r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                      settings=tight(theta=theta, time_step=h), domain=((-0.01,) * 3, (0.01,) * 3))
+    rest.step(20)
+    np.testing.assert_allclose(rest.contact_arrays()["impulse"][0], [0, 0, -mass(r) * G * h],
+                               rtol=tol, atol=1e-20)
+    np.testing.assert_allclose(rest.positions()[0], [0, 0, r], atol=r * tol)
+
+
+def test_a_sphere_on_a_vibrating_floor_rides_its_sinusoid():
+    """A floor in sinusoidal motion, z = A sin(2 pi f t) (the preparation's vibration), below
+    g in acceleration (A (2 pi f)^2 = 0.99 m/s^2): the sphere resting on it stays in contact,
+    its centre at r + A sin(2 pi f t) at the end of every step (the wall's step velocity is its
+    displacement over the step, and the end-of-step gap is closed exactly at theta = 1)."""
+    r, A, f, h = 0.004, 1e-3, 5.0, 1e-3
+    floor = walls.plane((0, 0, 0), (0, 0, 1), motion="sine", amplitude=(0, 0, A), frequency=f)
+    sim = Simulation([r], [[0, 0, r]], walls=[floor], settings=tight(time_step=h),
+                     domain=((-0.01,) * 3, (0.01, 0.01, 0.02)))
+    worst = 0.0
+    for _ in range(200):                                     # one period
+        sim.step()
+        want = r + A * math.sin(2 * math.pi * f * sim.time)
+        worst = max(worst, abs(sim.positions()[0, 2] - want))
+        assert len(sim.contact_arrays()["i"]) == 1
+    assert worst < (1e-12 if backend.precision() == "f64" else 2e-7), worst

@@ -449,6 +449,11 @@ def test_info_reads_a_prepared_sample_from_its_arrays(tmp_path):
     assert "outside the mould: 0" in text
     # two particle contacts (partners below n = 5), one with the wall; 4 um of overlap over 2 mm
     assert "contacts: 3, coordination 0.80, largest overlap 0.20 % of the smallest diameter" in text
+    # with their pairs and impulses: the one pressed pair (0-1, pushed apart along +z) of the two
+    arrays.update({"contacts/i": np.array([0, 2, 4], np.int32),
+                   "contacts/impulse": np.array([[0, 0, 1e-5], [0, 0, 0], [0, 0, 1e-5]])})
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    assert "contacts: 3, coordination 0.80 (0.40 carrying a force), largest" in io.info(path)
     # a grain through the mould (about its axis), one through the top plate
     arrays["particles/x"] = x + np.array([[0.0085, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0.0015]])
     io.save_checkpoint(path, arrays, {"time": 1.0})

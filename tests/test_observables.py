@@ -85,3 +85,20 @@ def test_outside_counts_spheres_through_the_mould_or_a_plate_beyond_the_slack():
     # the mould's axis moved by 1 mm along x: the grain at the centre line stays in, the
     # two near its wall at +x are further in, and none is pushed out on the -x side
     assert obs.outside(x, r, 0.01, 0.0, 0.01, axis=(0.001, 0.0)) == 2
+
+
+def test_coordination_counts_listed_pairs_or_the_ones_that_carried_a_force():
+    """Five grains in a row along x, contacts 0-1 pressed (impulse on j along x_j - x_i),
+    1-2 listed within the alert distance but carrying nothing, 2-3 with an impulse that pulls
+    them together (a reversed sign: not a compression), 3-4 pressed with a tangential part,
+    and grain 0 on a wall: 4 listed pairs (8 / 5 per grain), 2 that carried a force (4 / 5).
+    Session 42: the summaries' `coordination_number` counts the listed pairs (5.01 on the
+    shipped seed-1 sample, whose grains pressed on 4.01 per grain)."""
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]]) * 0.01
+    i = np.array([0, 1, 2, 3, 0])
+    j = np.array([1, 2, 3, 4, 5])                       # the last: wall 0 (j >= n)
+    impulse = np.array([[2e-4, 0, 0], [0, 0, 0], [-1e-4, 0, 0], [3e-4, 1e-4, 0], [0, 0, 5e-4]])
+    loaded = obs.carries_force(i, j, impulse, x)
+    assert loaded.tolist() == [True, False, False, True, False]
+    assert obs.coordination_number(i, j, 5) == pytest.approx(8 / 5)
+    assert obs.coordination_number(i, j, 5, loaded) == pytest.approx(4 / 5)
