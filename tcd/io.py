@@ -147,8 +147,11 @@ def atomic_path(path):
     directory = os.path.dirname(os.path.abspath(target))
     if os.path.isdir(target):               # os.replace would fail only after all the work
         raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", target)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp",
-                               dir=directory)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp",
+                                   dir=directory)
+    except OSError as exc:                  # named by the path asked for, not the temporary
+        raise type(exc)(exc.errno, exc.strerror, target) from None
     os.close(fd)
     try:
         yield tmp

@@ -93,10 +93,14 @@ def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.nda
 
 
 def _finite(name: str, value, *, low=None, positive=False) -> None:
-    """ValueError unless `value` is a finite number (>= low, or > 0 with `positive`)."""
+    """ValueError unless `value` is a finite number (>= low, or > 0 with `positive`); a
+    string ("1e-4") or a bool is not a number here (it was stored as given, and failed later
+    in arithmetic far from its name)."""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
     try:
         ok = math.isfinite(float(value))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
     if not ok or (positive and not float(value) > 0) or (low is not None and float(value) < low):
         need = "positive and finite" if positive else (f"finite and >= {low}" if low is not None
@@ -179,6 +183,7 @@ class SolverSettings:
 
     def __post_init__(self):
         _finite("time_step", self.time_step, positive=True)
+        _finite("theta", self.theta)
         if not 0.5 <= self.theta <= 1.0:
             raise ValueError(f"theta must be in [0.5, 1], got {self.theta}")
         _finite("tolerance", self.tolerance, positive=True)
@@ -235,6 +240,7 @@ class BondLaw:
                   "yield_stress"):
             _finite(f"bond {f}", getattr(self, f), positive=True)
         _finite("bond friction_after_break", self.friction_after_break, low=0.0)
+        _finite("poisson_ratio", self.poisson_ratio)
         if not -1.0 < self.poisson_ratio < 0.5:
             raise ValueError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
 
@@ -270,6 +276,8 @@ def default_cell_size(radius, alert: float, margin: float) -> float:
 
 
 MAX_GRID_CELLS = 64_000_000
+#: the largest first contact buffer a Simulation accepts (slots; it grows on overflow anyway)
+MAX_CONTACT_CAPACITY = 2**27
 
 
 class GridTooLarge(ValueError):
@@ -279,7 +287,7 @@ class GridTooLarge(ValueError):
 class Simulation:
     """Rigid spheres between kinematic walls, stepped by Contact Dynamics.
 
-    radius (N,) m, position (N,3) m; density (kg/m^3) or per-particle `mass`; layer (N,) ints;
+    radius (N,) m, position (N,3) m; density (kg/m^3); layer (N,) ints;
     walls: list of `Wall`; friction: particle-particle Coulomb coefficient; domain: (lo, hi)
     corners (m) of the broad-phase grid (particles outside are clamped to its border cells);
     cell_size (m) of the grid (default: `default_cell_size`, the size that makes the fewest
@@ -316,6 +324,30 @@ class Simulation:
         _finite("density", density, positive=True)
         _finite("friction", friction, low=0.0)
         _finite("time", time)
+        if not isinstance(settings, SolverSettings):
+            raise TypeError(f"settings must be a SolverSettings, got {type(settings).__name__}")
+        if not isinstance(bond_law, BondLaw):
+            raise TypeError(f"bond_law must be a BondLaw, got {type(bond_law).__name__}")
+        if layer is not None:
+            layer = np.asarray(layer)
+            if layer.shape != (n,) or not np.issubdtype(layer.dtype, np.integer):
+                raise ValueError(f"layer must be {n} integers (one per particle), got shape "
+                                 f"{layer.shape}, dtype {layer.dtype}")
+            if layer.size and (layer.min() < 0 or layer.max() > INT32_MAX):
+                raise ValueError("layer ids must be in [0, 2^31)")
+        if cell_size is not None:
+            _finite("cell_size", cell_size, positive=True)
+        if contact_capacity is not None:
+            _integer("contact_capacity", contact_capacity, 1, MAX_CONTACT_CAPACITY)
+        if domain is not None:
+            try:
+                box = np.asarray(domain, dtype=float)
+            except (TypeError, ValueError):
+                box = None
+            if box is None or box.shape != (2, 3) or not np.all(np.isfinite(box)) \
+                    or not np.all(box[0] < box[1]):
+                raise ValueError("domain must be two finite corners ((x0, y0, z0), (x1, y1, z1)) "
+                                 f"with x0 < x1, y0 < y1, z0 < z1, got {domain!r}")
         velocity = (np.zeros((n, 3)) if velocity is None
                     else per_particle("velocity", velocity, n, broadcast=False))
         if fixed is not None:
@@ -365,6 +397,16 @@ class Simulation:
                              f"{self.systems} systems already runs one thread per system on the "
                              "serial schedule: use schedule = \"serial\"")
 
+        # the broad phase's box and cells, checked before any field is made (a failed field
+        # allocation leaves Taichi's field tree unusable for the rest of the process)
+        if domain is None:
+            domain = (position.min(axis=0) - radius.max(), position.max(axis=0) + radius.max())
+        self.domain = (np.asarray(domain[0], float), np.asarray(domain[1], float))
+        self.cell_size = (float(cell_size) if cell_size else
+                          default_cell_size(radius, self.alert, self._half_skin))
+        self.cell_size = max(self.cell_size, 1e-9)
+        self._grid_dims()
+
         self.particles = acquire(Particles, n)
         p = self.particles
         p.count[None] = n
@@ -394,12 +436,6 @@ class Simulation:
         self.walls: list[Wall] = []
         self.set_walls(walls)
 
-        if domain is None:
-            domain = (position.min(axis=0) - radius.max(), position.max(axis=0) + radius.max())
-        self.domain = (np.asarray(domain[0], float), np.asarray(domain[1], float))
-        self.cell_size = (float(cell_size) if cell_size else
-                          default_cell_size(radius, self.alert, self._half_skin))
-        self.cell_size = max(self.cell_size, 1e-9)
         self.grid = self._make_grid(self._grid_capacity_estimate(radius))
         # a settled bed has about 3 contacts per sphere (walls included): the buffer grows if not
         cap = contact_capacity if contact_capacity else max(64, 4 * n)
@@ -416,19 +452,29 @@ class Simulation:
         self._refit_contacts = False
 
     # ---------------------------------------------------------------- construction helpers
-    def _make_grid(self, capacity: int) -> Grid:
+    def _grid_dims(self) -> np.ndarray:
+        """The grid's cells along x, y, z for the domain and cell size; GridTooLarge (before
+        anything is allocated) when they are too many. Counted in Python integers: NumPy's
+        product of three int64 overflowed for a cell of 1e-9 m, and slipped past the check."""
         lo, hi = self.domain
-        dims = np.maximum(1, np.ceil((hi - lo) / self.cell_size).astype(int))
-        ncells = int(np.prod(dims))
+        dims = [max(1, math.ceil(float(e) / self.cell_size)) for e in (hi - lo)]
+        ncells = math.prod(dims)
         if ncells > MAX_GRID_CELLS:
             ext = ", ".join(f"{1e3 * e:.4g}" for e in (np.asarray(hi) - np.asarray(lo)))
-            raise GridTooLarge(f"broad-phase grid of {dims.tolist()} cells (at most "
+            shown = dims if max(dims) < 10**12 else [f"{d:.3g}" for d in map(float, dims)]
+            raise GridTooLarge(f"broad-phase grid of {shown} cells (at most "
                                f"{MAX_GRID_CELLS:.3g}) is too large: a domain of ({ext}) mm in "
                                f"cells of {1e3 * self.cell_size:.4g} mm (about the largest "
                                "grain's diameter): shrink the domain, or give a larger cell_size")
         if ncells * self.systems >= 2**31:
             raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
                              "indices: enlarge cell_size or batch fewer systems")
+        return np.array(dims, dtype=np.int64)
+
+    def _make_grid(self, capacity: int) -> Grid:
+        lo, hi = self.domain
+        dims = self._grid_dims()
+        ncells = int(np.prod(dims))
         # about 4 buckets per particle up to the number of cells (a power of two: c mod 2^k),
         # and at least the smallest capacity class, so that small simulations share their
         # grid and its kernels (state.MIN_SLOTS; the buckets past the cells stay empty). 8 per
@@ -441,11 +487,21 @@ class Simulation:
         grid.configure(lo, self.cell_size, dims, buckets)
         return grid
 
+    _POOLED = ("particles", "wall_fields", "grid", "neighbours", "contacts", "bonds", "colours",
+               "partition", "stats")
+
     def close(self) -> None:
         """Hand the fields back to the pool for the next simulation (done on deletion too)."""
-        for name in ("particles", "wall_fields", "grid", "neighbours", "contacts", "bonds", "colours",
-                     "partition", "stats"):
+        for name in self._POOLED:
             release(self.__dict__.pop(name, None))
+        self.__dict__["_closed"] = True
+
+    def __getattr__(self, name):
+        # only reached when `name` is not set: after close(), its fields are gone
+        if name in Simulation._POOLED and self.__dict__.get("_closed"):
+            raise RuntimeError("this Simulation was closed (close() handed its fields back to the "
+                               "pool): make a new one")
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def __del__(self):
         try:
@@ -474,6 +530,7 @@ class Simulation:
                 raise ValueError(f"wall {k} is a {type(w).__name__}, not a tcd.walls.Wall "
                                  "(make it with walls.plane / walls.cylinder, or Wall.from_dict)")
             self._check_fits(k, w)
+            self._check_system(w)
         self.walls = walls
         self._upload_walls(self.time)
         if hasattr(self, "contacts"):
@@ -488,10 +545,6 @@ class Simulation:
         put(wf.lo, np.array([w.extent[0] for w in walls], float))
         put(wf.hi, np.array([w.extent[1] for w in walls], float))
         put(wf.friction, np.array([w.friction for w in walls], float))
-        for w in walls:
-            if w.system >= self.systems:
-                raise ValueError(f"wall {w.name!r} is tagged with system {w.system}, but the "
-                                 f"simulation has {self.systems} system(s)")
         put(wf.system, np.array([w.system for w in walls], np.int32))
         put(wf.rim, np.array([int(w.edges == "rim") for w in walls], np.int32))
         wf.count[None] = len(walls)
@@ -1039,6 +1092,7 @@ class Simulation:
         if not np.array_equal(system, get(p.system, n)):
             raise ValueError("state's particle systems differ from the simulation's "
                              "(build the simulation with system=...)")
+        self._check_state_arrays(d, n)
         radius = np.asarray(d["particles/radius"]).astype(backend.numpy_real())
         if not np.array_equal(radius, get(p.radius, n)):
             # the grid cell, alert distance and projection slop follow the radii
@@ -1076,6 +1130,57 @@ class Simulation:
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
         if len(force) == len(self.walls):
             put(self.wall_fields.force, force)
+
+    def _check_state_arrays(self, d: dict, n: int) -> None:
+        """Refuse, naming the key, a state whose arrays would corrupt the run once installed:
+        wrong lengths (they were zero-padded or cut), indices out of range, NaN or infinite
+        numbers, negative inverse masses, bond states other than intact or broken."""
+        def arr(key):
+            return np.asarray(d[key])
+
+        def need(key, shape, *, kind="f", finite=True, low=None):
+            a = arr(key)
+            if a.shape != shape or a.dtype.kind not in (("i", "u") if kind == "i" else ("f", "i", "u")):
+                raise ValueError(f"state's {key} has shape {a.shape} and dtype {a.dtype}, expected "
+                                 f"{shape} {'integers' if kind == 'i' else 'numbers'}")
+            if kind == "f" and finite and not np.all(np.isfinite(a)):
+                raise ValueError(f"state's {key} holds NaN or infinite values")
+            if low is not None and a.size and a.min() < low:
+                raise ValueError(f"state's {key} holds values below {low}")
+            return a
+
+        for key in ("inv_mass", "inv_inertia"):
+            need("particles/" + key, (n,), low=0.0)
+        need("particles/f_ext", (n, 3))
+        need("particles/layer", (n,), kind="i", low=0)
+        m = len(arr("contacts/i"))
+        ci = need("contacts/i", (m,), kind="i", low=0)
+        if m and ci.max() >= n:
+            raise ValueError(f"state's contacts/i has indices outside the {n} particles")
+        need("contacts/j", (m,), kind="i")
+        need("contacts/impulse", (m, 3))
+        if "contacts/impulse_old" in d:
+            need("contacts/impulse_old", (m, 3))
+        need("contacts/gap", (m,))
+        # (its values are not checked: a simulation that never stepped holds its pooled
+        # buffer's old ones, which nothing reads while its contact count is 0)
+        need("contacts/start", (n + 1,), kind="i")
+        b = len(arr("bonds/state"))
+        state = need("bonds/state", (b,), kind="i")
+        if b and not np.all(np.isin(state, (sk.INTACT, sk.BROKEN_TENSION, sk.BROKEN_SHEAR))):
+            raise ValueError(f"state's bonds/state holds values other than {sk.INTACT} (intact), "
+                             f"{sk.BROKEN_TENSION} and {sk.BROKEN_SHEAR} (broken)")
+        if b:
+            for key in ("bonds/i", "bonds/j"):
+                if key not in d:
+                    raise ValueError(f"state has {b} bonds but no {key}")
+                a = need(key, (b,), kind="i", low=0)
+                if a.max() >= n:
+                    raise ValueError(f"state's {key} has indices outside the {n} particles")
+        for key, default in self._BOND_DEFAULTS.items():
+            if "bonds/" + key in d and key not in ("i", "j", "state"):
+                shape = (b, 3) if key in self._BOND_VECTORS else (b,)
+                need("bonds/" + key, shape, finite=key != "broken_time")
 
     # ---------------------------------------------------------------- batched systems
     @classmethod
@@ -1218,7 +1323,12 @@ class Simulation:
         return get(self.particles.radius, self.n).astype(float)
 
     def wall_force(self, k: int) -> np.ndarray:
-        return self.wall_fields.force[k].to_numpy().astype(float)
+        """Force (N) the grains exerted on wall k over the last step."""
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) \
+                or not 0 <= k < len(self.walls):
+            raise ValueError(f"no wall {k!r}: the simulation has {len(self.walls)} walls "
+                             f"(0 to {len(self.walls) - 1})")
+        return self.wall_fields.force[int(k)].to_numpy().astype(float)
 
     def set_external_force(self, force) -> None:
         """Force (N) on every particle: one 3-vector per particle, or one for all."""
@@ -1258,13 +1368,21 @@ class Simulation:
 
     def replace_wall(self, k: int, wall: Wall) -> None:
         """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
-        if not 0 <= k < len(self.walls):
-            raise ValueError(f"no wall {k}: the simulation has {len(self.walls)} walls")
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) \
+                or not 0 <= k < len(self.walls):
+            raise ValueError(f"no wall {k!r}: the simulation has {len(self.walls)} walls")
         if not isinstance(wall, Wall):
             raise ValueError(f"wall {k}: a {type(wall).__name__}, not a tcd.walls.Wall")
         self._check_fits(k, wall)
+        self._check_system(wall)
         self.walls[k] = wall
         self._upload_walls(self.time)
+
+    def _check_system(self, w: Wall) -> None:
+        """Refuse (before anything changes) a wall tagged with a system the simulation lacks."""
+        if w.system >= self.systems:
+            raise ValueError(f"wall {w.name!r} is tagged with system {w.system}, but the "
+                             f"simulation has {self.systems} system(s)")
 
     def _check_fits(self, k: int, w: Wall) -> None:
         """A cylinder (its inner surface holds the spheres) must be wider than the largest

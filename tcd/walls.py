@@ -109,6 +109,15 @@ class Wall:
         object.__setattr__(self, "system", int(self.system))
         if self.motion == "sine" and not self.frequency > 0:
             raise ValueError(f"wall {self.name!r}: sinusoidal motion needs frequency > 0")
+        unused = [key for key, motions in (("velocity", ("constant", "sine")),
+                                           ("amplitude", ("sine",)))
+                  if self.motion not in motions and any(getattr(self, key))]
+        if unused:
+            import warnings
+            warnings.warn(f"wall {self.name!r}: motion {self.motion!r} ignores its "
+                          f"{' and '.join(unused)} (give motion=\"constant\" or \"sine\"; to "
+                          "set a moving wall going from where it is, Wall.moving_from)",
+                          UserWarning, stacklevel=3)
 
     def position(self, t: float) -> np.ndarray:
         p0 = np.asarray(self.point, dtype=float)
@@ -124,7 +133,18 @@ class Wall:
         return (self.position(t + h) - self.position(t)) / h
 
     def moved(self, **changes) -> "Wall":
+        """A copy with `changes` (dataclasses.replace): the motion keeps its anchor (`point`
+        at `start`), so a new velocity alone makes the wall jump to where it would have been;
+        `moving_from` sets a wall going from where it is."""
         return dataclasses.replace(self, **changes)
+
+    def moving_from(self, t: float, velocity) -> "Wall":
+        """This wall moving at the constant `velocity` (m/s) from time `t` on, from where it is
+        at `t`: for `Simulation.replace_wall(k, wall.moving_from(sim.time, v))`, which keeps
+        its contact history (as the preparation's servo plate is driven)."""
+        return dataclasses.replace(self, point=tuple(self.position(t)), motion="constant",
+                                   velocity=tuple(velocity), amplitude=(0.0, 0.0, 0.0),
+                                   frequency=0.0, start=float(t))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -545,6 +545,17 @@ def test_same_inputs_give_the_same_numbers():
     (dict(radius=[0.001] * 4, position=np.zeros((4, 2))), r"position must have shape \(4, 3\)"),
     (dict(radius=[0.001] * 4, position=np.zeros(12)), r"position must have shape \(4, 3\)"),
     (dict(radius=[[0.001, 0.002]], position=np.zeros((2, 3))), r"radius must be one number"),
+    # the session 42 API audit: zero-padded, cut or truncated before; or NumPy's errors
+    (dict(layer=[7, 0]), r"layer must be 1 integers"),
+    (dict(layer=[1.9]), r"layer must be 1 integers"),
+    (dict(domain=((0, 0), (1, 1))), "domain must be two finite corners"),
+    (dict(domain=((1, 1, 1), (-1, -1, -1))), "domain must be two finite corners"),
+    (dict(domain=((float("nan"),) * 3, (1, 1, 1))), "domain must be two finite corners"),
+    (dict(cell_size=float("nan")), "cell_size must be positive and finite"),
+    (dict(cell_size=-1.0), "cell_size must be positive and finite"),
+    (dict(contact_capacity=2.5), "contact_capacity must be an integer"),
+    (dict(contact_capacity=0), "contact_capacity must be an integer"),
+    (dict(density="2600"), "density must be a number, got '2600'"),
 ])
 def test_bad_input_is_refused_with_a_named_reason(bad, message):
     args = dict(radius=[0.001], position=[[0, 0, 0]])
@@ -747,3 +758,94 @@ def test_a_sphere_on_a_vibrating_floor_rides_its_sinusoid():
         worst = max(worst, abs(sim.positions()[0, 2] - want))
         assert len(sim.contact_arrays()["i"]) == 1
     assert worst < (1e-12 if backend.precision() == "f64" else 2e-7), worst
+
+
+def test_bad_api_input_never_leaves_a_half_built_simulation_or_a_broken_process():
+    """Session 42's API audit. A cell of 1e-9 m overflowed NumPy's product of the grid's
+    dimensions past the size check, and a contact buffer of 1e12 slots was asked of Taichi: the
+    failed allocation broke every simulation of the process. Both are refused before any field
+    is made. A wall refused by set_walls or replace_wall used to be half installed. wall_force
+    read past its walls. A closed simulation failed with AttributeErrors."""
+    r = 0.005
+    sim = Simulation([r], [[0, 0, r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     domain=((-0.01,) * 3, (0.01,) * 3))
+    sim.step()
+    for bad in (dict(cell_size=1e-9), dict(contact_capacity=10**12)):
+        with pytest.raises(ValueError, match="broad-phase grid of|contact_capacity"):
+            Simulation([r, r], [[0, 0, r], [0.03, 0, r]], **bad)
+    sim.step()                                          # the process still works
+    Simulation([r], [[0, 0, r]]).close()
+    with pytest.raises(TypeError, match="settings must be a SolverSettings"):
+        Simulation([r], [[0, 0, r]], settings=None)
+    with pytest.raises(TypeError, match="bond_law must be a BondLaw"):
+        Simulation([r], [[0, 0, r]], bond_law=None)
+    for bad, what in ((dict(time_step="1e-4"), "time_step"), (dict(theta="1"), "theta")):
+        with pytest.raises(ValueError, match=f"{what} must be a number"):
+            SolverSettings(**bad)
+    with pytest.raises(ValueError, match="gap_tolerance|must be a number"):
+        sim.create_bonds("1e-6")
+    before = list(sim.walls)
+    with pytest.raises(ValueError, match="tagged with system 3"):
+        sim.set_walls([walls.plane((0, 0, 0), (0, 0, 1), system=3, name="bad")])
+    with pytest.raises(ValueError, match="tagged with system 2"):
+        sim.replace_wall(0, before[0].moved(system=2))
+    assert sim.walls == before
+    sim.step()
+    np.testing.assert_allclose(sim.wall_force(0), [0, 0, -mass(r) * G], rtol=1e-6)
+    for k in (1, -1, 64, 0.5, True):
+        with pytest.raises(ValueError, match="no wall"):
+            sim.wall_force(k)
+    sim.close()
+    with pytest.raises(RuntimeError, match="was closed"):
+        sim.step()
+    with pytest.raises(AttributeError):
+        sim.no_such_thing
+
+
+@pytest.mark.parametrize("key, spoil, message", [
+    ("particles/inv_mass", lambda a: a * np.nan, "particles/inv_mass holds NaN"),
+    ("particles/inv_mass", lambda a: -a, "particles/inv_mass holds values below 0"),
+    ("particles/inv_mass", lambda a: a[:-1], r"particles/inv_mass has shape \(2,\)"),
+    ("particles/f_ext", lambda a: a * np.nan, "particles/f_ext holds NaN"),
+    ("contacts/impulse", lambda a: a * np.nan, "contacts/impulse holds NaN"),
+    ("contacts/i", lambda a: a + 99, "contacts/i has indices outside"),
+    ("contacts/gap", lambda a: a[:-1], "contacts/gap has shape"),
+    ("bonds/state", lambda a: a * 0 + 7, "bonds/state holds values other than"),
+    ("bonds/g0", lambda a: a * np.nan, "bonds/g0 holds NaN"),
+    ("bonds/i", None, "state has 2 bonds but no bonds/i"),
+])
+def test_a_state_that_would_corrupt_the_run_is_refused_by_name(key, spoil, message):
+    """load_state_dict checked a few keys only: a NaN inverse mass, impulse or bond history
+    made every number NaN at the next step, a short array was zero-padded (a grain became
+    fixed), a bond state 7 was counted neither intact nor broken (session 42 API audit)."""
+    r = 0.004
+    x = [[0, 0, r], [2 * r, 0, r], [4 * r, 0, r]]
+    def make():
+        return Simulation([r] * 3, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                          domain=((-0.01, -0.01, -0.01), (0.03, 0.01, 0.02)))
+    a = make()
+    assert a.create_bonds(gap_tolerance=1e-6) == 2
+    a.step(3)
+    d = a.state_dict()
+    assert len(d["contacts/i"]) > 0
+    d = {k: v for k, v in d.items() if k != key} if spoil is None else {**d, key: spoil(d[key])}
+    b = make()
+    with pytest.raises(ValueError, match=message):
+        b.load_state_dict(d)
+
+
+def test_a_wall_set_going_from_where_it_is_and_motion_fields_it_ignores():
+    """`moved(velocity=...)` keeps the motion's anchor (a fixed wall stays fixed; a constant
+    one jumps to where the new velocity would have taken it since its start), which
+    docs/scripting.md once offered as the way to change a motion (session 42 API audit).
+    `moving_from(t, v)` sets the wall going from where it is at t; a velocity or amplitude
+    that the motion ignores is warned about."""
+    plate = walls.plane((0, 0, 0.05), (0, 0, -1), motion="constant", velocity=(0, 0, 0.01))
+    going = plate.moving_from(0.1, (0, 0, -0.1))
+    np.testing.assert_allclose(going.position(0.1), plate.position(0.1), rtol=1e-15)
+    np.testing.assert_allclose(going.position(0.2), plate.position(0.1) + [0, 0, -0.01], rtol=1e-12)
+    np.testing.assert_allclose(going.step_velocity(0.15, 1e-3), [0, 0, -0.1], rtol=1e-9)
+    with pytest.warns(UserWarning, match="motion 'fixed' ignores its velocity"):
+        walls.plane((0, 0, 0), (0, 0, 1), velocity=(0, 0, -1))
+    with pytest.warns(UserWarning, match="motion 'constant' ignores its amplitude"):
+        walls.plane((0, 0, 0), (0, 0, 1), motion="constant", amplitude=(0, 0, 1e-3))

@@ -551,3 +551,12 @@ def test_atomic_path_onto_a_directory_fails_before_the_work(tmp_path):
         with io.atomic_path(tmp_path / "out.h5"):
             pytest.fail("the body ran")
     assert [p.name for p in tmp_path.iterdir()] == ["out.h5"]       # no temporary file left
+
+
+def test_an_output_that_cannot_be_created_is_named_by_its_path_not_the_temporary(tmp_path):
+    """A write into a folder that does not exist named the temporary file beside the target
+    ('.c.h5.n3jwrbzf.tmp'), not the path given (session 42 API audit)."""
+    target = tmp_path / "no" / "such" / "c.h5"
+    with pytest.raises(FileNotFoundError) as caught:
+        io.save_checkpoint(target, {"a": np.zeros(2)}, {})
+    assert caught.value.filename == str(target) and ".tmp" not in str(caught.value)
