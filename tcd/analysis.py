@@ -162,7 +162,8 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
             prefix = prefix[: -len(suffix)]
     directory = os.path.dirname(os.path.abspath(prefix))
     if not os.path.isdir(directory):
-        raise ValueError(f"{prefix}: directory {directory} does not exist")
+        what = "is a file, not a folder" if os.path.exists(directory) else "does not exist"
+        raise ValueError(f"{prefix}: directory {directory} {what}")
     if not os.path.basename(prefix):
         raise ValueError(f"--out {out_prefix!r}: give a file name prefix (PREFIX.h5 and "
                          "PREFIX.csv are written)")

@@ -392,6 +392,9 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         raise ValueError(f"settle {settle}: expected a finite time >= 0 s")
     import tempfile
     base = pathlib.Path(out)
+    for folder in (base.parent, *base.parent.parents):
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"--out {out}: {folder} is a file, not a folder")
     try:                                # an unwritable --out fails now, not after hours
         base.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=base.parent):

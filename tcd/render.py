@@ -881,10 +881,45 @@ def _frame_names(f) -> list:
     return sorted(f["frames"].keys(), key=lambda name: (len(name), name))
 
 
+def _single_state(path) -> bool:
+    """Whether `path` is a tcd file holding one state (a prepared sample or a checkpoint),
+    which renders as a file of one frame."""
+    import h5py
+    try:
+        with h5py.File(os.fspath(path), "r") as f:
+            return _decode(f.attrs.get("tcd_file", "states")) == io.FILE_CHECKPOINT
+    except OSError:
+        return False
+
+
 def frame_count(path) -> int:
-    """Number of snapshots in a states.h5 (0 when it has no frames group)."""
+    """Number of snapshots in a states.h5 (0 when it has no frames group); 1 for a prepared
+    sample or a checkpoint."""
+    if _single_state(path):
+        return 1
     with _open_states(path) as f:
         return len(_frame_names(f))
+
+
+def _frame_of_state(path, frame) -> dict:
+    """The one state of a prepared sample or checkpoint as `load_frame` gives a frame (its
+    arrays checked as every state read: export.load_states)."""
+    from .export import load_states
+    if not isinstance(frame, (int, np.integer)) or frame not in (0, -1):
+        raise ValueError(f"{path}: frame {frame} out of range (a prepared sample or checkpoint "
+                         "holds one state: frame 0)")
+    state = load_states(path)[0][0]
+    n = len(state["particles/x"])
+    out = {"time": float(state.get("time", math.nan)), "step": int(state.get("step", -1)),
+           "stage": str(state.get("stage", ""))}
+    for key, (dataset, empty, dtype) in _FRAME_DATASETS.items():
+        if dataset in state:
+            out[key] = np.asarray(state[dataset], dtype)
+        elif dataset.startswith("particles/") and key in _PARTICLE_DEFAULTS:
+            out[key] = np.full((n,) + empty[1:], _PARTICLE_DEFAULTS[key], dtype)
+        else:
+            out[key] = np.zeros(empty, dtype)
+    return out
 
 
 def _decode(value):
@@ -905,6 +940,8 @@ def load_frame(path, frame: int = -1) -> dict:
     a missing frame, particles/x or particles/radius, or a partial walls/bonds group raises
     ValueError naming the file and the frame."""
     path = os.fspath(path)
+    if _single_state(path):
+        return _frame_of_state(path, frame)
     with _open_states(path) as f:
         names = _frame_names(f)
         if not names:

@@ -211,6 +211,39 @@ def test_load_frame_reads_the_schema_and_rejects_bad_requests(states, tmp_path):
         render.load_frame(tmp_path / "nope.h5")
 
 
+def test_a_prepared_sample_renders_as_a_file_of_one_frame(states, tmp_path):
+    """`tcd render prepared.h5` said "a tcd 'checkpoint' file, not a states file" (session 42
+    audit): a prepared sample or a checkpoint holds one state, which renders as frame 0, the
+    same picture as that state written as a frame of a states file."""
+    from tcd import io
+    frame = {k: v for k, v in h5_frame(states, 2).items()}
+    sample = tmp_path / "prepared.h5"
+    io.save_checkpoint(sample, frame, {"time": 0.2})
+    assert render.frame_count(sample) == 1
+    one = render.load_frame(sample)
+    want = render.load_frame(states, 2)
+    for key in ("x", "radius", "layer", "wall_kind", "wall_point", "bond_state"):
+        np.testing.assert_array_equal(one[key], want[key], err_msg=key)
+    assert one["time"] == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="holds one state: frame 0"):
+        render.load_frame(sample, 1)
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    render.render_file(sample, a, width=96, height=72)
+    render.render_file(states, b, frame=2, width=96, height=72)
+    # the same grains and walls, pixel for pixel below the top line's label (a states frame
+    # names its stage there, a prepared sample has none)
+    assert np.array_equal(iio.imread(a)[10:], iio.imread(b)[10:])
+
+
+def h5_frame(path, k):
+    """Frame k of a states file as the flat dict of arrays it was written from."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        f[f"frames/{k:06d}"].visititems(
+            lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
 def test_render_file_writes_png_and_gif(states, tmp_path):
     png = tmp_path / "frame.png"
     render.render_file(states, png, color="speed", width=96, height=72)
