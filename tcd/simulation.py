@@ -349,7 +349,7 @@ class Simulation:
                 raise ValueError("domain must be two finite corners ((x0, y0, z0), (x1, y1, z1)) "
                                  f"with x0 < x1, y0 < y1, z0 < z1, got {domain!r}")
         velocity = (np.zeros((n, 3)) if velocity is None
-                    else per_particle("velocity", velocity, n, broadcast=False))
+                    else per_particle("velocity", velocity, n))     # one for all, as set_velocities
         if fixed is not None:
             fixed = np.asarray(fixed)
             if fixed.shape != (n,) or fixed.dtype != bool:

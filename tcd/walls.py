@@ -104,7 +104,10 @@ class Wall:
                 raise ValueError(f"wall {self.name!r}: cylinder extent must have hi > lo")
         if self.friction < 0:
             raise ValueError(f"wall {self.name!r}: friction must be >= 0")
-        if not isinstance(self.system, (int, np.integer)) or self.system < -1:
+        if self.radius < 0:
+            raise ValueError(f"wall {self.name!r}: radius must be >= 0, got {self.radius!r}")
+        if isinstance(self.system, (bool, np.bool_)) or not isinstance(self.system, (int, np.integer)) \
+                or self.system < -1:
             raise ValueError(f"wall {self.name!r}: system must be an integer >= -1, got {self.system!r}")
         object.__setattr__(self, "system", int(self.system))
         if self.motion == "sine" and not self.frequency > 0:

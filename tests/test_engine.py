@@ -834,6 +834,19 @@ def test_a_state_that_would_corrupt_the_run_is_refused_by_name(key, spoil, messa
         b.load_state_dict(d)
 
 
+def test_walls_refuse_a_negative_radius_and_a_boolean_system_and_velocity_broadcasts():
+    """Session 42 API audit: a plane's radius of -1 and system=True (taken as system 1) were
+    accepted; `velocity=(vx, vy, vz)` was refused by the constructor, which set_velocities
+    broadcasts to every grain."""
+    with pytest.raises(ValueError, match="radius must be >= 0"):
+        walls.plane((0, 0, 0), (0, 0, 1), radius=-1.0)
+    with pytest.raises(ValueError, match="system must be an integer"):
+        walls.plane((0, 0, 0), (0, 0, 1), system=True)
+    sim = Simulation([0.001] * 2, [[0, 0, 0.01], [0, 0, 0.02]], velocity=(1.0, 0.0, 0.0),
+                     settings=tight(gravity=(0.0, 0.0, 0.0)))
+    np.testing.assert_array_equal(sim.velocities(), [[1.0, 0, 0], [1.0, 0, 0]])
+
+
 def test_a_wall_set_going_from_where_it_is_and_motion_fields_it_ignores():
     """`moved(velocity=...)` keeps the motion's anchor (a fixed wall stays fixed; a constant
     one jumps to where the new velocity would have taken it since its start), which
