@@ -131,6 +131,19 @@ def phase_table(per_step: dict, sweeps, max_sweeps: int, windows: int = 10) -> l
     return out
 
 
+def writable_folder(folder: pathlib.Path, label: str, *, make: bool = False) -> None:
+    """ValueError `label: cannot write into folder: reason` unless a file can be made in
+    `folder` (created first with `make`): an output checked before a run, not after it."""
+    import tempfile
+    try:
+        if make:
+            folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{label}: cannot write into {folder}: {exc.strerror or exc}") from None
+
+
 def check_trace(path) -> None:
     """Refuse a trace path whose folder does not exist before the run, not after it."""
     if path:
@@ -140,13 +153,7 @@ def check_trace(path) -> None:
         if pathlib.Path(path).is_dir():
             raise ValueError(f"trace {path}: is a directory; give a file name, e.g. "
                              f"{pathlib.Path(path) / 'steps.csv'}")
-        import tempfile
-        try:                            # a read-only folder fails now, not after the run
-            with tempfile.TemporaryFile(dir=parent):
-                pass
-        except OSError as exc:
-            raise ValueError(f"trace {path}: cannot write into {parent}: "
-                             f"{exc.strerror or exc}") from None
+        writable_folder(parent, f"trace {path}")   # a read-only one fails now, not after the run
 
 
 def write_trace(path, per_step: dict, sweeps, residuals) -> pathlib.Path:
@@ -390,18 +397,11 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
                          "which compile, are not timed)")
     if not (math.isfinite(settle) and settle >= 0.0):
         raise ValueError(f"settle {settle}: expected a finite time >= 0 s")
-    import tempfile
     base = pathlib.Path(out)
     for folder in (base.parent, *base.parent.parents):
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"--out {out}: {folder} is a file, not a folder")
-    try:                                # an unwritable --out fails now, not after hours
-        base.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=base.parent):
-            pass
-    except OSError as exc:
-        raise ValueError(f"--out {out}: cannot write into {base.parent}: "
-                         f"{exc.strerror or exc}") from None
+    writable_folder(base.parent, f"--out {out}", make=True)   # fails now, not after hours
     _init(arch, precision)
     rows = []
     for n in sizes:

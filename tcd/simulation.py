@@ -1177,7 +1177,7 @@ class Simulation:
                 a = need(key, (b,), kind="i", low=0)
                 if a.max() >= n:
                     raise ValueError(f"state's {key} has indices outside the {n} particles")
-        for key, default in self._BOND_DEFAULTS.items():
+        for key in self._BOND_DEFAULTS:
             if "bonds/" + key in d and key not in ("i", "j", "state"):
                 shape = (b, 3) if key in self._BOND_VECTORS else (b,)
                 need("bonds/" + key, shape, finite=key != "broken_time")
@@ -1322,13 +1322,18 @@ class Simulation:
     def radii(self) -> np.ndarray:
         return get(self.particles.radius, self.n).astype(float)
 
-    def wall_force(self, k: int) -> np.ndarray:
-        """Force (N) the grains exerted on wall k over the last step."""
+    def _wall_index(self, k) -> int:
+        """`k` as the index of one of the walls; ValueError naming it otherwise (a float, a
+        bool, or out of range: Taichi read past the walls' force field)."""
         if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) \
                 or not 0 <= k < len(self.walls):
             raise ValueError(f"no wall {k!r}: the simulation has {len(self.walls)} walls "
                              f"(0 to {len(self.walls) - 1})")
-        return self.wall_fields.force[int(k)].to_numpy().astype(float)
+        return int(k)
+
+    def wall_force(self, k: int) -> np.ndarray:
+        """Force (N) the grains exerted on wall k over the last step."""
+        return self.wall_fields.force[self._wall_index(k)].to_numpy().astype(float)
 
     def set_external_force(self, force) -> None:
         """Force (N) on every particle: one 3-vector per particle, or one for all."""
@@ -1368,9 +1373,7 @@ class Simulation:
 
     def replace_wall(self, k: int, wall: Wall) -> None:
         """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
-        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) \
-                or not 0 <= k < len(self.walls):
-            raise ValueError(f"no wall {k!r}: the simulation has {len(self.walls)} walls")
+        k = self._wall_index(k)
         if not isinstance(wall, Wall):
             raise ValueError(f"wall {k}: a {type(wall).__name__}, not a tcd.walls.Wall")
         self._check_fits(k, wall)
