@@ -33,12 +33,12 @@ def test_the_laws_creep_compliance_is_physics_md_s():
 
 
 def pair(r_i, r_j, *, mode="paper", h=2e-3, gravity=(0, 0, 0), fix_i=True, lock_j_rotation=True,
-         yield_stress=SIGMA_Y, friction_after_break=0.7):
+         yield_stress=SIGMA_Y, friction_after_break=0.7, theta=1.0):
     """Two touching spheres along x, bonded; i fixed, j free (rotation locked if asked)."""
     x = np.array([[0.0, 0, 0], [r_i + r_j, 0, 0]])
     sim = Simulation([r_i, r_j], x, fixed=[fix_i, False],
                      settings=SolverSettings(time_step=h, tolerance=1e-12, max_sweeps=200,
-                                             gravity=gravity),
+                                             gravity=gravity, theta=theta),
                      bond_law=BondLaw(mode=mode, yield_stress=yield_stress,
                                       friction_after_break=friction_after_break),
                      domain=((-0.02,) * 3, (0.04, 0.02, 0.02)))
@@ -53,11 +53,22 @@ def bond_gap(sim):
     return np.linalg.norm(x[1] - x[0]) - r.sum()
 
 
-@pytest.mark.parametrize("mode", ["burgers", "paper"])
-def test_normal_creep_follows_F_J_t(mode, tol):
+def creep_bound(precision):
+    """Largest relative departure of a Burgers creep from F J(t) the tests allow. The implicit
+    step is within 4e-5 of J(t) over 30 s at H = 5e-3 (session 43, a NumPy integration of the
+    scheme); dropping its Kelvin term H / (eta_k + H K_k) gives 4.4e-4, the Kelvin history
+    without its decay 9.4e-5. In f32 the creep over the first second, about 1.2e-6 m, is
+    resolved to a position quantum of 9.3e-10 m."""
+    return 7e-5 if precision == "f64" else 1e-2
+
+
+@pytest.mark.parametrize("mode, theta", [("burgers", 1.0), ("paper", 1.0), ("paper", 0.5)])
+def test_normal_creep_follows_F_J_t(mode, theta, tol, precision):
+    """At theta = 1/2 too: the bond's compliance enters the step as 1 / (theta H^2 K); without
+    the theta the creep would be off by a factor 2 (measured 5.4e-5 from F J(t) with it)."""
     F = 2.0                                   # N, tension along +x on sphere j
     h = 5e-3
-    sim = pair(0.004, 0.004, mode=mode, h=h)
+    sim = pair(0.004, 0.004, mode=mode, h=h, theta=theta)
     sim.set_external_force([[0, 0, 0], [F, 0, 0]])
     g0 = bond_gap(sim)
     worst = 0.0
@@ -68,14 +79,16 @@ def test_normal_creep_follows_F_J_t(mode, tol):
             expected = F * J(k * h)
             worst = max(worst, abs(delta / expected - 1.0))
     if mode == "burgers":
-        assert worst < 0.01
-    else:
+        assert worst < creep_bound(precision), worst
+    elif theta == 1.0:
         # the secant law is exact at every step, up to the inertia of the quasi-static pull
-        assert worst < max(tol, 1e-7) * 100
+        assert worst < max(tol, 1e-7) * 100, worst
+    else:
+        assert worst < max(1e-3, 100 * tol), worst
     assert sim.bonds_intact_count() == 1
 
 
-def test_tangential_creep_follows_2_1_plus_nu_F_J_t():
+def test_tangential_creep_follows_2_1_plus_nu_F_J_t(precision):
     F = 1.0
     h = 5e-3
     sim = pair(0.004, 0.004, mode="burgers", h=h)
@@ -87,7 +100,7 @@ def test_tangential_creep_follows_2_1_plus_nu_F_J_t():
         if k % 200 == 0:
             dy = sim.positions()[1, 1] - y0
             worst = max(worst, abs(dy / (2 * (1 + NU) * F * J(k * h)) - 1.0))
-    assert worst < 0.01
+    assert worst < creep_bound(precision), worst
 
 
 def position_quantum(precision, x=0.008):
@@ -116,10 +129,48 @@ def test_relaxation_under_held_displacement(mode, precision):
     if mode == "burgers":
         disc, exact = laws.burgers_relaxation_np(delta0, times, h, K_M, ETA_M, K_K, ETA_K)
         np.testing.assert_allclose(forces, disc, rtol=rtol)
-        np.testing.assert_allclose(forces, exact, rtol=0.01)
+        # the implicit step against the exact relaxation: 4.4e-4 apart (session 43)
+        np.testing.assert_allclose(forces, exact, rtol=max(2e-3, rtol))
         assert forces[-1] < 0.5 * forces[0]                          # it does relax
     else:
         np.testing.assert_allclose(forces, delta0 / J(times), rtol=rtol)
+
+
+@pytest.mark.parametrize("mode", ["paper", "burgers"])
+def test_a_turned_bond_carries_its_tangential_history_into_the_new_tangent_plane(mode, tol):
+    """PHYSICS.md section 4: when a bond's normal turns, its tangential displacement (and the
+    Burgers histories) are turned into the new tangent plane with their lengths kept. Both grains
+    held, a tangential displacement d along y, then j turned by 30 degrees about i (z axis): the
+    displacement becomes d (-sin 30, cos 30, 0), perpendicular to the new normal with length d
+    (dropping the turn leaves it along y, 0.5 d along the normal; projecting without keeping the
+    length gives 0.866 d), and the paper's law answers with a tangential impulse
+    -H d_t / (2 (1 + nu) J(H)) on j (its bodies held: no velocity to add)."""
+    h, d = 1e-3, 1e-6
+    sim = pair(0.004, 0.004, mode=mode, h=h)
+    put(sim.particles.inv_mass, [0.0, 0.0])
+    put(sim.particles.inv_inertia, [0.0, 0.0])
+    st = sim.state_dict()
+    st["bonds/d_t"][0] = [0.0, d, 0.0]
+    st["bonds/hd_t"][0] = [0.0, 0.1 * d, 0.0]
+    st["bonds/hk_t"][0] = [0.0, 0.2 * d, 0.0]
+    sim.load_state_dict(st)
+    a = math.radians(30)
+    x = sim.positions()
+    x[1] = 0.008 * np.array([math.cos(a), math.sin(a), 0.0])
+    sim.set_positions(x)
+    sim.step()
+    b = sim.state_dict()
+    n = np.array([math.cos(a), math.sin(a), 0.0])
+    turned = np.array([-math.sin(a), math.cos(a), 0.0])
+    np.testing.assert_allclose(b["bonds/d_t"][0], d * turned, rtol=max(tol, 1e-9), atol=d * tol)
+    for key in ("hd_t", "hk_t"):
+        v = b["bonds/" + key][0]
+        assert abs(v @ n) <= 10 * tol * np.linalg.norm(v), (key, v)
+    if mode == "paper":
+        np.testing.assert_allclose(b["bonds/impulse"][0],
+                                   -h * d * turned / (2 * (1 + NU) * J(h)),
+                                   rtol=max(tol, 1e-9), atol=tol * h * d / J(h))
+    assert sim.bonds_intact_count() == 1
 
 
 def ramp_until_break(sim, direction, rate, h, steps):
@@ -148,8 +199,10 @@ def test_bond_breaks_in_tension_at_yield_force_then_separates():
     h = 2e-4
     sim = pair(0.004, r_small, h=h)
     f_yield = SIGMA_Y * math.pi * r_small**2
-    f_break, k = ramp_until_break(sim, [1, 0, 0], rate=f_yield / 0.5, h=h, steps=5000)
-    assert abs(f_break / f_yield - 1) < 0.01
+    rate = f_yield / 0.5
+    f_break, k = ramp_until_break(sim, [1, 0, 0], rate=rate, h=h, steps=5000)
+    # the step the force passes the yield force, or the next (the ramp's step is rate h)
+    assert 0 <= f_break - f_yield <= 2 * rate * h, (f_break / f_yield - 1)
     d = sim.state_dict()
     assert d["bonds/state"][0] == 1                         # broken in tension
     assert abs(d["bonds/broken_time"][0] - k * h) < 1e-12
@@ -159,13 +212,25 @@ def test_bond_breaks_in_tension_at_yield_force_then_separates():
     sim.step(50)
     assert bond_gap(sim) > g_break + 1e-6                   # the pair separates
     assert sim.velocities()[1, 0] > 0
+    # pushed back onto i, the pair meets again as a plain frictional contact: the bond never
+    # re-forms, and the contact carries the push (at rest: R_n = F H)
+    sim.set_external_force([[0, 0, 0], [-f_yield, 0, 0]])
+    sim.step(1000)
+    d = sim.state_dict()
+    assert sim.bonds_intact_count() == 0 and d["bonds/state"][0] == 1
+    c = sim.contact_arrays()
+    assert len(c["i"]) == 1
+    assert abs(bond_gap(sim)) < 1e-6
+    np.testing.assert_allclose(c["impulse"][0] @ c["normal"][0] / h, f_yield, rtol=1e-3)
 
 
-def test_compression_beyond_the_yield_force_never_breaks_a_bond():
+def test_compression_beyond_the_yield_force_never_breaks_a_bond(precision):
     """PHYSICS.md section 5: a bond yields in tension (sigma = F_n / A > sigma_y, tension
     positive) or in shear; compression is carried by the grains. Pressed at three times the
     yield force for 0.2 s, the bond stays intact (a test of |F_n| against sigma_y A would
-    break it at once; the shear test presses at 0.9 F_y only, and cannot tell)."""
+    break it at once; the shear test presses at 0.9 F_y only, and cannot tell). The pair is
+    bonded by the paper's law (`pair`'s default), whose creep is exact at every step; the creep
+    over 0.2 s is 3.8 % of J(0.2 s), so the tolerance must be well below that."""
     r_small, h = 0.001, 2e-4
     sim = pair(0.004, r_small, h=h)
     f_yield = SIGMA_Y * math.pi * r_small**2
@@ -174,7 +239,10 @@ def test_compression_beyond_the_yield_force_never_breaks_a_bond():
     assert sim.bonds_intact_count() == 1
     assert sim.state_dict()["bonds/state"][0] == 0
     # the bond carried the push, creeping by the Burgers law: closing F J(t)
-    assert -bond_gap(sim) == pytest.approx(3 * f_yield * J(1000 * h), rel=0.02)
+    closing = 3 * f_yield * J(1000 * h)
+    assert closing / (3 * f_yield / K_M) - 1 > 0.03          # creep is there to be seen
+    rel = max(1e-4, 20 * position_quantum(precision, 0.005) / closing)
+    assert -bond_gap(sim) == pytest.approx(closing, rel=rel)
 
 
 @pytest.mark.parametrize("mu", [0.7, 0.3])
@@ -196,7 +264,14 @@ def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol, mu):
         sim.step()
         if sim.bonds_intact_count() == 0:
             break
-    assert abs(ft / f_yield - 1) < 0.01
+    # the bond's shear force is the applied force's part across the bond's normal, which has
+    # turned by the shear creep (about 3e-3 rad here: the 0.9 F_y push then adds 0.2 % of F_y):
+    # it reaches the yield force at the step of the break or the one before
+    x = sim.positions()
+    n = (x[1] - x[0]) / np.linalg.norm(x[1] - x[0])
+    f = np.array([-fn, ft, 0.0])
+    shear = np.linalg.norm(f - (f @ n) * n)
+    assert 0 <= shear - f_yield <= 2 * rate * h, (shear / f_yield - 1)
     assert sim.state_dict()["bonds/state"][0] == 2          # broken in shear
     # hold the forces: j slides on i, resisted by Coulomb friction mu * fn (one step: with
     # forces this large for a 2 mm grain, j leaves i within the next step)
@@ -212,6 +287,8 @@ def test_bond_breaks_in_shear_at_yield_force_then_slides_with_friction(tol, mu):
     a = (sim.velocities()[1, 1] - v0) / h
     np.testing.assert_allclose(a, (ft + c["impulse"][0][1] / h) / m, rtol=max(1e-6, 10 * tol))
     np.testing.assert_allclose(a, (ft - mu * fn) / m, rtol=0.02)
+    sim.step(20)                                # it stays broken: no bond re-forms
+    assert sim.bonds_intact_count() == 0 and sim.state_dict()["bonds/state"][0] == 2
 
 
 def test_bonded_cluster_at_rest_under_gravity_stays_at_rest(precision):
@@ -232,8 +309,12 @@ def test_bonded_cluster_at_rest_under_gravity_stays_at_rest(precision):
         ke = 0.5 * m * (sim.velocities() ** 2).sum()
         assert ke < max(1e-12 * m * 9.81 * r, noise)   # no energy created by the bonds
     assert sim.bonds_intact_count() == 12
-    # it only creeps down by the bond compliance under the weight above: micrometres
-    assert np.abs(sim.positions() - np.array(xs)).max() < 1e-5
+    # it only creeps down by the bond compliance under the weight above: the top grain of a
+    # column sinks by m g J(t) on each of its two bonds below, 2 m g J + m g J = 3 m g J(2 s)
+    # (1.4e-8 m; measured 1.07e-8, session 43); twice that, plus the position quantum
+    sink = 3 * m * 9.81 * J(sim.time)
+    assert np.abs(sim.positions() - np.array(xs)).max() < 2 * sink + 10 * position_quantum(
+        precision, 0.02)
 
 
 def truss(r, cells):
@@ -405,7 +486,8 @@ def test_light_grain_between_two_heavy_ones_takes_its_static_load(mode, schedule
     sim.step(steps)
     u = sim.positions()[1, 0] - x[1, 0]
     t = steps * h
-    # both laws creep as F J(t) under a constant force (Burgers to first order in H)
+    # the load sharing (a factor 2 if one bond carried it all) at the solver's tolerance 1e-4;
+    # over these 0.01 s the creep is 0.2 % of J, inside the 2 % allowed: this is no creep test
     assert u == pytest.approx(0.5 * F * J(t), rel=2e-2)
     fx = sim.state_dict()["bonds/impulse"][:, 0] / h
     np.testing.assert_allclose(np.sort(fx), [-0.5 * F, 0.5 * F], rtol=2e-2)

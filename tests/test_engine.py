@@ -53,8 +53,10 @@ def test_grid_broad_phase_equals_brute_force(seed):
     sim._build_contacts()
     c = sim.contact_arrays()
     found = list(zip(c["i"].tolist(), c["j"].tolist()))
-    expected = brute_force_pairs(x, r, sim.alert, v)
-    assert len(expected) > len(brute_force_pairs(x, r, sim.alert))
+    alert = 0.5 * r.min()               # alert_ratio times the smallest radius, not read from sim
+    assert sim.alert == pytest.approx(alert, rel=1e-12)
+    expected = brute_force_pairs(x, r, alert, v)
+    assert len(expected) > len(brute_force_pairs(x, r, alert))
     assert len(expected) > 200          # the cloud is dense enough to test something
     assert len(found) == len(set(found)), "a pair was found twice"
     assert set(found) == expected
@@ -94,7 +96,7 @@ def test_broad_phase_equals_brute_force_for_any_cell_size(factor):
     sim._build_contacts()
     c = sim.contact_arrays()
     found = list(zip(c["i"].tolist(), c["j"].tolist()))
-    assert found == sorted(brute_force_pairs(x, r, sim.alert, v))
+    assert found == sorted(brute_force_pairs(x, r, 0.5 * r.min(), v))
 
 
 def test_default_cell_size_minimises_the_pair_checks():
@@ -119,7 +121,7 @@ def test_broad_phase_with_particles_outside_grid_and_growing_buffers(small_class
     sim.grid = sim._make_grid(8)
     sim._build_contacts()
     c = sim.contact_arrays()
-    assert set(zip(c["i"].tolist(), c["j"].tolist())) == brute_force_pairs(x, r, sim.alert)
+    assert set(zip(c["i"].tolist(), c["j"].tolist())) == brute_force_pairs(x, r, 0.5 * r.min())
     assert any("contacts" in e for e in sim.grow_events)
     assert any("grid" in e for e in sim.grow_events)
     assert any("neighbour pairs" in e for e in sim.grow_events)
@@ -164,7 +166,7 @@ def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
         sim.step()
         c = sim.contact_arrays()
         pairs = [(i, j) for i, j in zip(c["i"].tolist(), c["j"].tolist()) if j < sim.n]
-        assert set(pairs) == brute_force_pairs(x0, r, sim.alert, v0)
+        assert set(pairs) == brute_force_pairs(x0, r, 0.1 * r.min(), v0)   # the default alert_ratio
         assert pairs == sorted(pairs)
     assert 1 < sim.neighbour_builds < steps // 2, sim.neighbour_builds
     # a grain moved from outside (set_positions) makes a new list
@@ -361,12 +363,21 @@ def test_sphere_on_incline_rolls_or_slips(theta_deg, mu, rolls, tol):
     v = sim.velocities()[0]
     np.testing.assert_allclose(v @ down, a * t, rtol=max(tol, 1e-6))
     np.testing.assert_allclose(v @ np.array(normal), 0.0, atol=1e-9 if tol < 1e-6 else 1e-5)
-    spin = np.linalg.norm(sim.angular_velocities()[0]) * r
+    w = sim.angular_velocities()[0]
+    spin = np.linalg.norm(w) * r
+    # the spin's direction too: the friction at the contact point -r n turns the sphere about
+    # n x down (a wrong sign in the torque would keep |w| and reverse it)
+    axis = np.cross(normal, down)
     if rolls:
         np.testing.assert_allclose(spin, a * t, rtol=max(tol, 1e-6))   # no slip: w r = v
+        # no slip at the contact point: v + w x (-r n) = 0, i.e. w = n x v / r
+        np.testing.assert_allclose(w, np.cross(normal, v) / r, rtol=max(tol, 1e-6),
+                                   atol=1e-9 * a * t / r)
     else:
-        # slipping: torque mu m g cos(th) r gives w r = 5/2 mu g cos(th) t < v
+        # slipping: torque mu m g cos(th) r gives w r = 5/2 mu g cos(th) t < v, about n x down
         np.testing.assert_allclose(spin, 2.5 * mu * G * math.cos(th) * t, rtol=max(tol, 1e-6))
+        np.testing.assert_allclose(w, 2.5 * mu * G * math.cos(th) * t / r * axis,
+                                   rtol=max(tol, 1e-6), atol=1e-9 * spin / r)
         assert spin < v @ down
 
 
@@ -740,6 +751,30 @@ def test_the_theta_scheme_in_free_fall_and_at_rest(theta, tol):
     np.testing.assert_allclose(rest.contact_arrays()["impulse"][0], [0, 0, -mass(r) * G * h],
                                rtol=tol, atol=1e-20)
     np.testing.assert_allclose(rest.positions()[0], [0, 0, r], atol=r * tol)
+
+
+@pytest.mark.parametrize("theta", [0.5, 0.75, 1.0])
+def test_the_theta_scheme_closes_an_approaching_gap_at_the_end_of_the_step(theta, tol):
+    """Moreau-Jean's theta scheme with a contact that moves (PHYSICS.md sections 1-2): a sphere
+    at gap g0 from a plane, approaching at V, no gravity. Signorini holds on the end-of-step gap
+    g0 + H (theta v+ + (1 - theta) v-) = 0, so v+ = -(g0 - (1 - theta) H V) / (theta H): -0.4,
+    -0.6 and -0.7 m/s for theta = 0.5, 0.75 and 1, and the step ends touching. The (1 - theta)
+    terms vanish at theta = 1 (every other contact test): a sign error in them there would leave
+    the contact open (g0 + (1 - theta) H V > alert at theta = 1/2) and the sphere 0.3 mm into
+    the plate."""
+    r, h, speed, g0 = 0.004, 1e-3, 1.0, 0.7e-3
+    sim = Simulation([r], [[0, 0, r + g0]], velocity=[[0, 0, -speed]],
+                     walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     settings=tight(theta=theta, time_step=h, gravity=(0, 0, 0)),
+                     domain=((-0.01,) * 3, (0.01,) * 3))
+    rec = sim.step()
+    assert rec.contacts == 1
+    v_end = -(g0 - (1 - theta) * h * speed) / (theta * h)
+    assert sim.velocities()[0, 2] == pytest.approx(v_end, rel=max(tol, 1e-9))
+    assert sim.positions()[0, 2] - r == pytest.approx(0.0, abs=r * max(tol, 1e-9))
+    # the impulse took the momentum from -V to v+
+    assert sim.contact_arrays()["impulse"][0][2] == pytest.approx(
+        -mass(r) * (v_end + speed), rel=max(tol, 1e-9))
 
 
 def test_a_sphere_on_a_vibrating_floor_rides_its_sinusoid():

@@ -1,6 +1,7 @@
 """End to end through `tcd run`: outputs, resume after a kill, crash-safe files (issue 4)."""
 import csv
 import json
+import math
 import os
 import pathlib
 import signal
@@ -85,6 +86,23 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert "frames" in io.info(sample / "states.h5")
     # refuses to overwrite a finished run without --resume
     assert run_tcd(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
+
+
+def test_shear_series_is_the_ring_force_over_the_sample_section(micro_run):
+    """The Leutner shear's measure (PHYSICS.md section 8): tau = F_x / (pi R^2), R the mould's
+    inner radius (12 mm here), F_x the force the grains exert against the moving upper ring's
+    motion; the displacement is the ring's imposed travel, 600 mm/min from the start of the
+    shear to 0.2 mm (a diameter for the radius would be a factor 4, the lower ring's force the
+    opposite sign)."""
+    _, out = micro_run
+    s = io.read_series(out / "sample_3" / "shear_series.h5")
+    force, stress = np.asarray(s["shear_force"]), np.asarray(s["shear_stress"])
+    np.testing.assert_allclose(stress, force / (math.pi * 0.012**2), rtol=1e-12)
+    t, d = np.asarray(s["time"]), np.asarray(s["displacement"])
+    np.testing.assert_allclose(np.diff(d) / np.diff(t), 0.6 / 60.0, rtol=1e-9)
+    assert d[-1] == pytest.approx(0.2e-3, rel=1e-6) and d[0] < 0.01e-3
+    half = len(force) // 2
+    assert np.mean(force[half:]) > 0          # the grains hold the ring back
 
 
 def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
