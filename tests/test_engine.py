@@ -897,3 +897,68 @@ def test_a_wall_set_going_from_where_it_is_and_motion_fields_it_ignores():
         walls.plane((0, 0, 0), (0, 0, 1), velocity=(0, 0, -1))
     with pytest.warns(UserWarning, match="motion 'constant' ignores its amplitude"):
         walls.plane((0, 0, 0), (0, 0, 1), motion="constant", amplitude=(0, 0, 1e-3))
+
+
+# --- session 43's mutation audit: lines that no test noticed when corrupted --------------------
+def test_sphere_rolls_without_slip_on_a_fixed_sphere(tol):
+    """The incline test with the plane replaced by a fixed sphere i: the free sphere is body j
+    of the contact, so its spin enters the relative velocity (+ r_j w_j) and takes the angular
+    impulse -(r_j n) x R (the j side had no test). On the tangent plane tilted by theta
+    (tan theta < 3.5 mu): rolling, a = 5/7 g sin(theta) down-slope and the contact point of j at
+    rest. After one step from rest the geometry is exact; after three, the curvature (arc over
+    radius ~ 1e-4) limits it to 1e-3. A lone contact's local solve is exact (W_tt = 1/m_j +
+    r_j^2/I_j): each step converges at the second sweep (with a wrong W_tt, below W/2 here,
+    Gauss-Seidel does not reach the answer)."""
+    th = math.radians(30.0)
+    ri, rj, h = 0.005, 0.004, 2e-4
+    n = np.array([-math.sin(th), 0.0, math.cos(th)])       # contact normal, i -> j
+    down = np.array([-math.cos(th), 0.0, -math.sin(th)])   # down the tangent plane
+    sim = Simulation([ri, rj], [[0.0, 0.0, 0.0], list((ri + rj) * n)], fixed=[True, False],
+                     friction=0.7, settings=tight(time_step=h, check_every=1),
+                     domain=((-0.02,) * 3, (0.02,) * 3))
+    a = 5.0 / 7.0 * G * math.sin(th)
+    # in f32 a gap is known to a position quantum q: its velocity term q / H is noise
+    q = float(np.spacing(np.float32(ri + rj))) if backend.precision() == "f32" else 0.0
+    for k, rtol in ((1, max(tol, 1e-8)), (2, 1e-3), (3, 1e-3)):
+        sim.step()
+        v, w = sim.velocities()[1], sim.angular_velocities()[1]
+        assert v @ down == pytest.approx(a * k * h, rel=rtol)
+        assert abs(v @ n) < 1e-3 * a * k * h + 10 * q / h
+        # rolling on a fixed surface: the contact point of j is at rest, v + w x (-r_j n) = 0
+        np.testing.assert_allclose(v + np.cross(w, -rj * n), 0.0, atol=rtol * a * k * h + 10 * q / h)
+        assert sim.last.sweeps <= 2, sim.last.sweeps
+
+
+def test_a_fast_plate_catches_a_grain_beyond_the_alert_distance(tol):
+    """A plate rising at V = 5 m/s (H V = 1 mm per step) toward a sphere at rest, no gravity,
+    gap g0 = 0.6 mm: beyond the alert distance (0.1 r = 0.4 mm), within the plate's travel. The
+    contact is built from the wall's reach H |V| (the preparation's 30 Hz, 6 mm vibration moves
+    the plate about 0.23 mm per step, more than the alert distance); at theta = 1 the end gap
+    closes exactly: v+ = V - g0 / H = 2 m/s, the sphere touching the plate at V H."""
+    r, h, V, g0 = 0.004, 2e-4, 5.0, 6e-4
+    plate = walls.plane((0, 0, 0), (0, 0, 1), motion="constant", velocity=(0, 0, V))
+    sim = Simulation([r], [[0, 0, r + g0]], walls=[plate],
+                     settings=tight(time_step=h, gravity=(0, 0, 0)),
+                     domain=((-0.01,) * 3, (0.01, 0.01, 0.02)))
+    sim.step()
+    assert sim.velocities()[0, 2] == pytest.approx(V - g0 / h, rel=max(tol, 1e-9))
+    assert sim.positions()[0, 2] - r - V * h == pytest.approx(0.0, abs=r * max(tol, 1e-9))
+    sim.close()
+
+
+def test_the_first_sweep_of_a_cold_contact_measures_one():
+    """PHYSICS.md section 6: the residual is sum |dR| / sum |R| over a sweep. A sphere set on
+    a plane, no warm start: the first sweep takes the impulse from 0 to m g H, so it measures
+    |R| / |R| = 1, and the second one (an exact local solve) 0. At a tolerance of 0.5 the step
+    takes exactly two sweeps and reports 0; at 1.0 it stops after one and reports 1 (a scaled
+    measure would stop at once or never)."""
+    r = 0.004
+    for tolerance, sweeps, residual in ((0.5, 2, 0.0), (1.0, 1, 1.0)):
+        sim = Simulation([r], [[0, 0, r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                         settings=SolverSettings(tolerance=tolerance, max_sweeps=100,
+                                                 check_every=1),
+                         domain=((-0.01,) * 3, (0.01,) * 3))
+        sim.step()
+        assert sim.last.sweeps == sweeps
+        assert sim.last.residual == pytest.approx(residual, abs=1e-6)
+        sim.close()

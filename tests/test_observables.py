@@ -102,3 +102,25 @@ def test_coordination_counts_listed_pairs_or_the_ones_that_carried_a_force():
     assert loaded.tolist() == [True, False, False, True, False]
     assert obs.coordination_number(i, j, 5) == pytest.approx(8 / 5)
     assert obs.coordination_number(i, j, 5, loaded) == pytest.approx(4 / 5)
+
+
+def test_slab_volume_of_a_cap_is_pi_h2_3r_minus_h_over_3():
+    """A sphere cut at a height h above its bottom: the cap below holds pi h^2 (3 r - h) / 3
+    (h = r / 2: 5 pi r^3 / 24). The slab totals and the symmetric cases of layer_interface
+    cannot tell a cap from any other volume that is 0 at h = 0 and 4/3 pi r^3 at h = 2 r."""
+    r = 0.002
+    z = np.array([0.01])
+    cap = obs.slab_volume(z, np.array([r]), -1.0, z[0] - r + 0.5 * r)
+    assert cap[0] == pytest.approx(5.0 * math.pi * r**3 / 24.0, rel=1e-14)
+    top = obs.slab_volume(z, np.array([r]), z[0] + 0.5 * r, 1.0)     # the cap r / 2 high above
+    assert top[0] == pytest.approx(math.pi * (0.5 * r) ** 2 * (3 * r - 0.5 * r) / 3.0, rel=1e-14)
+
+
+def test_kinetic_energy_counts_the_spin_with_two_fifths_m_r2():
+    rho = 2600.0
+    r = np.array([0.004, 0.002])
+    m = rho * 4.0 / 3.0 * math.pi * r**3
+    v = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    w = np.array([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0]])
+    ke = obs.kinetic_energy(v, w, r, rho)
+    assert ke == pytest.approx(0.5 * m[0] * 0.01 + 0.5 * 0.4 * m[1] * r[1] ** 2 * 900.0, rel=1e-14)
