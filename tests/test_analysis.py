@@ -194,3 +194,17 @@ def test_a_time_step_that_contradicts_the_file_is_refused(tmp_path):
     with pytest.raises(ValueError, match="records its own time step"):
         analysis.analyse(path, tmp_path / "a", time_step=2 * H)
     analysis.analyse(path, tmp_path / "b", time_step=H)
+
+
+# --- session 43's mutation audit of the files and checks that guard the results -------------
+# analysis.py frame_row: fabric_anisotropy is the largest minus the smallest eigenvalue
+def test_fabric_anisotropy_is_largest_minus_smallest_eigenvalue():
+    from tcd import analysis
+    x = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1]], float) * 0.01
+    f = {"particles/x": x, "particles/radius": np.full(4, 0.005),
+         "contacts/i": np.array([0, 0, 0], np.int32), "contacts/j": np.array([1, 2, 3], np.int32),
+         "contacts/impulse": np.zeros((3, 3)), "time": 0.0, "step": 0}
+    row = analysis.frame_row(f, None)
+    assert (row["fabric_xx"], row["fabric_yy"], row["fabric_zz"]) == pytest.approx((2 / 3, 0, 1 / 3))
+    assert row["fabric_anisotropy"] == pytest.approx(2 / 3)
+

@@ -568,3 +568,16 @@ def test_gpu_study_is_the_study_on_the_resident_schedule():
         d["solver"].pop("schedule")
         d["solver"].pop("warm_start_extrapolation")
     assert gpu == study
+
+
+# --- session 43's mutation audit of the files and checks that guard the results -------------
+# config.py ShearStage._check: a smoothing window as long as the whole shear is refused
+def test_a_smoothing_window_as_long_as_the_shear_is_refused():
+    from tcd.config import ScenarioError, parse_scenario
+    text = (ROOT / "scenarios" / "tiny.toml").read_text()
+    assert text.count("smoothing_window_mm = 0.02") == 1
+    with pytest.raises(ScenarioError, match=r"stage\[2\]\.smoothing_window_mm: 0\.4 mm must be "
+                                            r"smaller than displacement_mm \(0\.4 mm\)"):
+        parse_scenario(text.replace("smoothing_window_mm = 0.02", "smoothing_window_mm = 0.4"),
+                       "tiny.toml")
+

@@ -232,3 +232,27 @@ def test_cli_export(states, tmp_path, capsys):
     assert cli.main(["export", str(states), "--out", str(tmp_path / "v"), "--parts", "x"]) == 2
     assert cli.main(["export", str(tmp_path / "none.h5"), "--out", str(tmp_path / "v")]) == 2
     assert "none.h5: no such file" in capsys.readouterr().err
+
+
+# --- session 43's mutation audit of the files and checks that guard the results -------------
+# export.py load_states: a checkpoint's contact arrays past its `contacts/start` table's end are
+# unused capacity, not contacts
+def test_a_checkpoint_s_unused_contact_capacity_is_not_exported(tmp_path):
+    import meshio
+    from tcd import export
+    x = np.array([[0.0, 0, 0.01], [0.02, 0, 0.01], [0.04, 0, 0.01]])
+    arrays = {"particles/x": x, "particles/radius": np.full(3, 0.01),
+              # two contacts (0-1, 1-2), then two slots of unused capacity
+              "contacts/start": np.array([0, 1, 2, 2], np.int32),
+              "contacts/i": np.array([0, 1, 0, 0], np.int32),
+              "contacts/j": np.array([1, 2, 0, 0], np.int32),
+              "contacts/impulse": np.zeros((4, 3)), "contacts/gap": np.zeros(4)}
+    path = tmp_path / "checkpoint.h5"
+    io.save_checkpoint(path, arrays, {"time": 1.0})
+    (state,), _ = export.load_states(path)
+    np.testing.assert_array_equal(state["contacts/i"], [0, 1])
+    np.testing.assert_array_equal(state["contacts/j"], [1, 2])
+    export.export(path, tmp_path / "vtk", parts=["contacts"])
+    m = meshio.read(tmp_path / "vtk" / "checkpoint_contacts_000000.vtu")
+    np.testing.assert_array_equal(m.cells_dict["line"], [[0, 1], [1, 2]])
+

@@ -5,6 +5,7 @@ import os
 import random
 import re
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -560,3 +561,120 @@ def test_an_output_that_cannot_be_created_is_named_by_its_path_not_the_temporary
     with pytest.raises(FileNotFoundError) as caught:
         io.save_checkpoint(target, {"a": np.zeros(2)}, {})
     assert caught.value.filename == str(target) and ".tmp" not in str(caught.value)
+
+
+# --- session 43's mutation audit of the files and checks that guard the results -------------
+def _frame(n=3):
+    return {"particles/x": np.arange(3.0 * n).reshape(n, 3), "particles/radius": np.full(n, 1e-3)}
+
+
+# io.py atomic_path: fsync of the temporary before os.replace, then of the directory
+def test_atomic_write_fsyncs_the_new_content_before_renaming_it(tmp_path, monkeypatch):
+    events = []
+    real_file, real_dir, real_replace = io._fsync_file, io._fsync_dir, os.replace
+
+    def fsync_file(path):
+        with open(path) as fh:
+            events.append(("fsync", os.fspath(path), fh.read()))
+        real_file(path)
+
+    def fsync_dir(directory):
+        events.append(("fsync_dir", os.fspath(directory)))
+        real_dir(directory)
+
+    def replace(src, dst):
+        events.append(("replace", os.fspath(src), os.fspath(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(io, "_fsync_file", fsync_file)
+    monkeypatch.setattr(io, "_fsync_dir", fsync_dir)
+    monkeypatch.setattr(os, "replace", replace)
+    target = tmp_path / "summary.json"
+    io.write_json(target, {"a": 1})
+    assert [e[0] for e in events] == ["fsync", "replace", "fsync_dir"], events
+    (_, synced, content), (_, src, dst), (_, directory) = events
+    assert synced == src != str(target) and dst == str(target)   # the temporary, then renamed
+    assert content == target.read_text() == '{\n  "a": 1\n}\n'
+    assert directory == str(tmp_path)
+
+
+# io.py atomic_path: the result keeps the mode of the file it replaces (umask for a new one)
+def test_atomic_write_gives_the_result_the_replaced_file_s_mode_or_the_umask_s(tmp_path):
+    old = os.umask(0o022)
+    try:
+        target = tmp_path / "summary.json"
+        io.write_json(target, {"a": 1})                  # mkstemp alone would give 0o600
+        assert stat.S_IMODE(os.stat(target).st_mode) == 0o644
+        os.chmod(target, 0o640)
+        io.write_json(target, {"a": 2})
+        assert stat.S_IMODE(os.stat(target).st_mode) == 0o640
+        states = tmp_path / "states.h5"
+        io.append_frame(states, _frame(), time=0.0, step=0, stage="prepare")
+        assert stat.S_IMODE(os.stat(states).st_mode) == 0o644
+    finally:
+        os.umask(old)
+
+
+# io.py keep_frames: the cut file keeps the root attributes (scenario text, version, schema)
+# and every kept frame whole (attributes, datasets, units)
+def test_keep_frames_keeps_the_file_attributes_and_the_kept_frames_whole(tmp_path):
+    path = tmp_path / "states.h5"
+    text = 'name = "t"\n[solver]\ntime_step = 0.001\n'
+    for k in range(4):
+        io.append_frame(path, _frame(), time=0.1 * k, step=10 * k, stage="shear",
+                        scenario_text=text, tcd_version="9.9")
+    with h5py.File(path, "r") as f:
+        before = {k: v for k, v in f.attrs.items()}
+    assert io.keep_frames(path, 2) == 2
+    assert io.frame_count(path) == 2
+    with h5py.File(path, "r") as f:
+        after = {k: v for k, v in f.attrs.items()}
+        assert f["frames/000001/particles/x"].attrs["units"] == "m"
+    assert after == before and after["scenario"] == text and after["tcd_version"] == "9.9"
+    back = io.read_frame(path, -1)
+    assert (back["time"], back["step"], back["stage"]) == (0.1, 10, "shear")
+    np.testing.assert_array_equal(back["particles/x"], _frame()["particles/x"])
+    # the export reads the time step back from the cut file's scenario
+    from tcd import export
+    assert export.load_states(path)[1] == 0.001
+
+
+# io.py check_state: a zero radius is not a grain (inverse mass, volume, glyph scale all break)
+def test_a_zero_radius_read_back_is_refused_naming_the_key():
+    frame = _frame()
+    frame["particles/radius"] = np.array([1e-3, 0.0, 1e-3])
+    with pytest.raises(ValueError, match=r"where: key 'particles/radius' holds 1 radii that are not positive"):
+        io.check_state(frame, "where")
+
+
+# io.py _to_int: an integer that does not fit the schema dtype is refused, not wrapped on disk
+def test_integers_outside_the_schema_dtype_are_refused_not_wrapped(tmp_path):
+    path = tmp_path / "states.h5"
+    for key, value in (("particles/layer", np.array([0, 1, 2**31], np.int64)),
+                       ("bonds/state", np.array([0, 256 + 1], np.int64))):
+        frame = _frame()
+        frame[key] = value
+        if key.startswith("bonds/"):
+            frame.update({"bonds/i": np.array([0, 1], np.int32), "bonds/j": np.array([1, 2], np.int32)})
+        with pytest.raises(ValueError, match=rf"'{key}' has values outside the int(32|8) range"):
+            io.append_frame(path, frame, time=0.0, step=0, stage="prepare")
+    assert os.listdir(tmp_path) == []
+
+
+# io.py _check_frame: units that contradict the schema (mm for positions) are refused
+def test_units_that_contradict_the_schema_are_refused_before_writing(tmp_path):
+    path = tmp_path / "states.h5"
+    with pytest.raises(ValueError, match=r"units 'mm' for 'particles/x' contradict the schema \('m'\)"):
+        io.append_frame(path, _frame(), time=0.0, step=0, stage="prepare",
+                        units={"particles/x": "mm"})
+    assert not path.exists()
+
+
+# io.py _write_frame: every frame records the unit of its time attribute
+def test_each_frame_records_its_time_unit(tmp_path):
+    path = tmp_path / "states.h5"
+    for k in range(2):
+        io.append_frame(path, _frame(), time=0.5 * k, step=k, stage="prepare")
+    with h5py.File(path, "r") as f:
+        assert [f["frames"][name].attrs["time_units"] for name in ("000000", "000001")] == ["s", "s"]
+

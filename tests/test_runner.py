@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import h5py
 import numpy as np
 import pytest
 
@@ -856,3 +857,108 @@ def test_a_run_records_whether_each_settling_phase_settled(micro_run):
     assert isinstance(prep["warnings"], list)
     unsettled = [rec for rec in settling if not rec["settled"]]
     assert sum("reached its time limit" in w for w in prep["warnings"]) == len(unsettled)
+
+
+# --- session 43's mutation audit of the files and checks that guard the results -------------
+def _tiny():
+    from tcd.config import parse_scenario
+    text = (ROOT / "scenarios" / "tiny.toml").read_text()
+    return text, parse_scenario(text, str(ROOT / "scenarios" / "tiny.toml"))
+
+
+# runner.py check_run_checkpoint: a checkpoint of another seed (copied across sample_<seed>
+# directories, or a batch of other seeds) is refused, naming the file
+def test_a_checkpoint_of_another_seed_is_refused():
+    from tcd import runner
+    text, scn = _tiny()
+    meta = {k: 0 for k in runner.SAMPLE_CHECKPOINT_KEYS}
+    meta.update(seed=1, scenario_text=text)
+    runner.check_run_checkpoint(scn, "sample_1/checkpoint.h5", meta,
+                                runner.SAMPLE_CHECKPOINT_KEYS, seeds=[1])   # its own: accepted
+    with pytest.raises(ValueError, match=r"sample_2/checkpoint.h5: the checkpoint holds seeds \[1\], "
+                                         r"the scenario \[2\]"):
+        runner.check_run_checkpoint(scn, "sample_2/checkpoint.h5", meta,
+                                    runner.SAMPLE_CHECKPOINT_KEYS, seeds=[2])
+    batch = {k: 0 for k in runner.BATCH_CHECKPOINT_KEYS}
+    batch.update(seeds=[1, 2], scenario_text=text)
+    with pytest.raises(ValueError, match=r"holds seeds \[1, 2\], the scenario \[1, 3\]"):
+        runner.check_run_checkpoint(scn, "batch_checkpoint.h5", batch,
+                                    runner.BATCH_CHECKPOINT_KEYS, seeds=[1, 3])
+
+
+# runner.py _scenario_record / scenario_changes: a resume must share every section but the
+# seeds, the description and the backend; output settings included (snapshot spacing)
+def test_scenario_changes_cover_every_section_but_seeds_description_and_backend():
+    from tcd import runner
+    from tcd.config import parse_scenario
+    text, scn = _tiny()
+    same = text.replace("seeds = [1]", "seeds = [1, 7]").replace(
+        'description = "scaled', 'description = "other').replace('[solver]', '[backend]\nprecision = "f32"\n\n[solver]')
+    assert runner.scenario_changes(text, parse_scenario(same, scn.source), "w") == []
+    for old, new, line in (
+            ("snapshot_every = 0.05", "snapshot_every = 0.02", "output.snapshot_every: 0.05 -> 0.02"),
+            ("checkpoint_every_s = 5", "checkpoint_every_s = 5\nseries_every = 3",
+             "output.series_every: 1 -> 3"),
+            ("friction = 0.7", "friction = 0.5", "material.friction: 0.7 -> 0.5"),
+            ("time_step = 5e-4", "time_step = 4e-4", "solver.time_step: 0.0005 -> 0.0004"),
+            ('mode = "paper"', 'mode = "burgers"', "bond.mode: 'paper' -> 'burgers'"),
+            ("displacement_mm = 0.4", "displacement_mm = 0.5", "stages[1].displacement_mm: 0.4 -> 0.5")):
+        assert text.count(old) == 1, old
+        changed = runner.scenario_changes(text, parse_scenario(text.replace(old, new), scn.source), "w")
+        assert changed == [line], (old, changed)
+
+
+# runner.py _shear_numbers / SERIES_UNITS / _write_series: the shear series file is in SI units
+# (attributes tau_peak in Pa, d_peak and smoothing_window in m; units on every dataset and in
+# the CSV header)
+def test_shear_series_file_holds_si_units_and_peak_attributes(tmp_path):
+    from types import SimpleNamespace
+    from tcd import runner
+    proto = SimpleNamespace(cfg=SimpleNamespace(smoothing_window_mm=0.1),
+                            finish=lambda sim, phase, arrays, x_start: {"tau_peak_MPa": 0.9,
+                                                                        "d_peak_mm": 2.4})
+    numbers, attrs = runner._shear_numbers(proto, None, None, {}, tmp_path / "states.h5", None)
+    assert numbers == {"tau_peak_MPa": 0.9, "d_peak_mm": 2.4}
+    assert attrs == pytest.approx({"tau_peak": 0.9e6, "d_peak": 2.4e-3, "smoothing_window": 1e-4})
+    arrays = {k: np.arange(3.0) for k in ("time", "displacement", "shear_force", "shear_stress",
+                                          "kinetic_energy", "top_plate_force", "top_plate_z", "sweeps")}
+    runner._write_series(tmp_path, "shear", arrays, attrs)
+    with h5py.File(tmp_path / "shear_series.h5", "r") as f:
+        units = {k: f[k].attrs["units"] for k in arrays}
+        assert f.attrs["d_peak"] == pytest.approx(2.4e-3)
+    assert units == {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
+                     "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m", "sweeps": "1"}
+    header = (tmp_path / "shear_series.csv").read_text().splitlines()[0]
+    assert header == ("time [s],displacement [m],shear_force [N],shear_stress [Pa],"
+                      "kinetic_energy [J],top_plate_force [N],top_plate_z [m],sweeps [1]")
+
+
+# runner.py summarize: the run summary names the backend it ran on
+def test_summary_records_the_arch_and_precision_and_the_means():
+    from tcd import runner
+    _, scn = _tiny()
+    scn = scn.with_overrides(precision="f32")
+    samples = [{"seed": 1, "tau_peak_MPa": 0.8, "d_peak_mm": 2.0, "wall_time_s": {"0:shear": 1.0}},
+               {"seed": 2, "tau_peak_MPa": 1.0, "d_peak_mm": 3.0, "wall_time_s": {}}]
+    summary = runner.summarize(scn, samples)
+    assert (summary["scenario"], summary["arch"], summary["precision"]) == ("tiny", "cpu", "f32")
+    assert summary["mean"]["tau_peak_MPa"] == 0.9 and summary["mean"]["d_peak_mm"] == 2.5
+    assert summary["wall_time_s"] == {"sample_1": {"0:shear": 1.0}, "sample_2": {}}
+
+
+# runner.py _write_sample_summary: the headline numbers are the stages' own
+def test_sample_summary_lifts_each_stage_s_headline_numbers(tmp_path):
+    from tcd import runner
+    shear = {"tau_peak_MPa": 0.9, "d_peak_mm": 2.4, "residual_MPa": 0.5, "bonds_total": 10,
+             "bonds_broken": 3, "bonds_broken_tension": 1, "bonds_broken_shear": 2, "particles": 170,
+             "peak_index": 7}
+    result = {"stages": {"0:prepare": {"particles": 180, "packing_fraction": 0.6,
+                                       "packing_fraction_per_layer": [0.58, 0.62]},
+                         "1:shear": shear}, "wall_time_s": {}}
+    flat = runner._write_sample_summary(tmp_path, 5, result)
+    assert json.loads((tmp_path / "summary.json").read_text()) == flat
+    assert flat["seed"] == 5 and flat["packing_fraction"] == 0.6
+    assert {k: flat[k] for k in shear if k != "peak_index"} == {k: v for k, v in shear.items()
+                                                                if k != "peak_index"}
+    assert "peak_index" not in flat
+
