@@ -962,3 +962,31 @@ def test_the_first_sweep_of_a_cold_contact_measures_one():
         assert sim.last.sweeps == sweeps
         assert sim.last.residual == pytest.approx(residual, abs=1e-6)
         sim.close()
+
+
+# --- session 43's mutation audit of the schedules, batching and the grid ------------------
+@pytest.mark.parametrize("box", [(0.008, 0.05, 0.03), (0.05, 0.008, 0.03)])
+@pytest.mark.parametrize("factor", [0.3, 1.0])
+def test_broad_phase_on_a_grid_of_unequal_sides(box, factor):
+    """The broad phase's brute-force test on a domain whose grid has unequal sides (the other
+    tests use a cube, where a cell index mixing up the x and y dimensions is the right one):
+    the canonical pairs, each once. Kills: cell_index multiplying by dims[0] for dims[1]."""
+    rng = np.random.default_rng(7)
+    r = packing.course_radii("binder", 500, rng) * 0.25
+    x = rng.uniform(0.0, 1.0, size=(500, 3)) * np.array(box)
+    v = rng.normal(0.0, 2.0, size=x.shape)
+    ref = Simulation(r, x, velocity=v, settings=SolverSettings(alert_ratio=0.5),
+                     domain=((0, 0, 0), box))
+    sim = Simulation(r, x, velocity=v, settings=SolverSettings(alert_ratio=0.5),
+                     domain=((0, 0, 0), box), cell_size=factor * ref.cell_size)
+    dims = sim._grid_dims()
+    assert len(set(np.asarray(dims).tolist()[:2])) == 2, dims
+    sim._build_contacts()
+    c = sim.contact_arrays()
+    found = list(zip(c["i"].tolist(), c["j"].tolist()))
+    expected = sorted(brute_force_pairs(x, r, 0.5 * r.min(), v))
+    assert len(expected) > 200
+    assert found == expected
+    ref.close()
+    sim.close()
+

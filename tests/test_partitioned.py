@@ -214,3 +214,115 @@ def test_the_gpu_refuses_the_partitioned_schedule(monkeypatch):
     monkeypatch.setattr(backend, "arch", lambda: "gpu")
     with pytest.raises(ValueError, match="on the GPU use schedule"):
         Simulation([0.001], [[0, 0, 0.001]], settings=SolverSettings(schedule="partitioned"))
+
+
+# --- session 43's mutation audit of the schedules, batching and the grid ------------------
+def test_check_every_gives_the_serial_numbers_with_one_part():
+    """check_every = 3: every step ends on a multiple of 3 sweeps (or max_sweeps), the pour
+    still needs many sweeps (a test that measures a sweep that did not measure its sums
+    would read 0 and stop at 3), and one part is the serial sweep bit for bit.
+    Kills: nlgs_serial measuring on sweeps % check_every (off by one); close_sweep testing
+    (sweeps + 1) % check_every."""
+    a, sa = pour(steps=150, schedule="serial", check_every=3, max_sweeps=1000)
+    b, sb = pour(steps=150, schedule="partitioned", threads=1, check_every=3, max_sweeps=1000)
+    assert sa.max() > 20
+    assert np.all((sa % 3 == 0) | (sa == 1000))
+    assert np.array_equal(sa, sb)
+    assert np.array_equal(a.positions(), b.positions())
+    a.close()
+    b.close()
+
+
+def chain(order, threads=4):
+    """Five spheres in a row along x, touching, the two ends thrown inwards, no gravity nor
+    walls: with 4 parts the slabs are the spheres 0, 1, 2 and {3, 4}, so every interior list
+    holds one contact at most and the boundary list the three others, which share bodies."""
+    r = np.full(5, 0.005)
+    x = np.zeros((5, 3))
+    x[:, 0] = 2 * r * np.arange(5)
+    v = np.zeros((5, 3))
+    v[0, 0], v[4, 0] = 0.3, -0.2
+    sim = Simulation(r, x, velocity=v,
+                     settings=SolverSettings(schedule="partitioned", threads=threads,
+                                             sweep_order=order, gravity=(0.0, 0.0, 0.0),
+                                             tolerance=1e-13, max_sweeps=5000),
+                     domain=((-0.01, -0.01, -0.01), (0.05, 0.01, 0.01)))
+    rec = sim.step()
+    cstart = sim.partition.cstart.to_numpy()[: threads + 2]
+    out = (rec.sweeps, sim.velocities(), np.diff(cstart))
+    sim.close()
+    return out
+
+
+def test_symmetric_order_reverses_the_boundary_list_too():
+    """Interior lists of one contact read the same both ways, so forward and symmetric sweeps
+    differ here only through the boundary list. Kills: the boundary list always swept
+    forward."""
+    sf, vf, sizes = chain("forward")
+    ss, vs, _ = chain("symmetric")
+    assert sizes[:-1].max() <= 1 and sizes[-1] >= 2, sizes
+    assert sf > 4 and ss > 4
+    assert not np.array_equal(vf, vs)
+
+
+def bonded(blocks, steps=8, **settings):
+    """test_partitioned's settled 60-grain pile (pile()), bonded, its mould moving sideways,
+    then `steps` steps."""
+    state, r = pile()
+    wl = [walls.plane((0, 0, 0), (0, 0, 1)),
+          walls.cylinder((0, 0, 0), (0, 0, 1), 0.0125, (0, 1), motion="constant",
+                         velocity=(0.01, 0, 0))]
+    sim = Simulation(r, state["particles/x"], walls=wl,
+                     settings=SolverSettings(bond_blocks=blocks, **settings),
+                     domain=((-0.05, -0.05, 0), (0.05, 0.05, 0.2)))
+    sim.load_state_dict({**state, "walls/force": np.zeros((2, 3))})
+    assert sim.create_bonds(gap_tolerance=5e-4) > 100
+    sweeps = [sim.step().sweeps for _ in range(steps)]
+    return sim, np.array(sweeps)
+
+
+@pytest.mark.parametrize("blocks", [False, True])
+def test_bond_item_lists_are_sound(blocks):
+    """Every active bond item (a particle's bond block, or an intact bond) is listed once, an
+    interior item's bodies all lie in its slab and a boundary item's do not; the same for the
+    bonds' momentum lists. Kills: a block's
+    crossing test reading bd.j (the partner only when the particle is bd.i)."""
+    threads = 3
+    sim, _ = bonded(blocks, steps=2, schedule="partitioned", threads=threads)
+    pt, n = sim.partition, sim.n
+    part = pt.part.to_numpy()[:n]
+    d = sim.state_dict()
+    bi, bj = d["bonds/i"], d["bonds/j"]
+    intact = d["bonds/state"] == 0
+    if blocks:
+        bodies = [[q] + bj[(bi == q) & intact].tolist() + bi[(bj == q) & intact].tolist()
+                  for q in range(n)]
+    else:
+        bodies = [[int(i), int(j)] if ok else [] for i, j, ok in zip(bi, bj, intact)]
+    active = [q for q, b in enumerate(bodies) if len(b) > 1]
+    bstart = pt.bstart.to_numpy()[: threads + 2]
+    order = pt.border.to_numpy()[: bstart[-1]]
+    assert sorted(order.tolist()) == active
+    boundary = 0
+    for k in range(threads + 1):
+        for q in order[bstart[k]:bstart[k + 1]]:
+            slabs = set(part[bodies[q]].tolist())
+            if k < threads:
+                assert slabs == {k}, (k, q, slabs)
+            else:
+                assert len(slabs) > 1, (q, slabs)
+                boundary += 1
+    assert boundary > 0 and bstart[threads] > 0
+    # the bonds' momentum lists (every intact bond once; a bond of two slabs on the boundary
+    # list, whose momentum one thread applies). Kills: bond_list checking only bd.i's slab.
+    mstart = pt.mstart.to_numpy()[: threads + 2]
+    morder = pt.morder.to_numpy()[: mstart[-1]]
+    assert sorted(morder.tolist()) == np.nonzero(intact)[0].tolist()
+    for k in range(threads + 1):
+        slabs = part[bi[morder[mstart[k]:mstart[k + 1]]]], part[bj[morder[mstart[k]:mstart[k + 1]]]]
+        if k < threads:
+            assert np.all(slabs[0] == k) and np.all(slabs[1] == k), k
+        else:
+            assert mstart[k + 1] > mstart[k] and np.all(slabs[0] != slabs[1])
+    sim.close()
+

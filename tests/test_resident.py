@@ -261,3 +261,20 @@ def test_the_resident_block_is_reported_as_run(backend, monkeypatch, momentum, a
                      settings=SolverSettings(schedule="resident", acceleration=acceleration))
     assert sim.resident_block["momentum"] == reported
     sim.close()
+
+
+# --- session 43's mutation audit of the schedules, batching and the grid ------------------
+def test_check_every_on_the_coloured_and_resident_schedules():
+    """check_every = 3 on the coloured schedule and the resident one (one system, no momentum:
+    the coloured schedule's numbers): every step ends on a multiple of 3 sweeps, the same in
+    both, same state. Kills: either loop testing (sweeps + 1) % check_every."""
+    a = pour(1, "coloured", check_every=3)
+    b = pour(1, "resident", acceleration="none", check_every=3)
+    sweeps = np.array([(a.step().sweeps, b.step().sweeps) for _ in range(150)])
+    assert sweeps.max() > 5
+    assert np.all((sweeps % 3 == 0) | (sweeps == 300))
+    np.testing.assert_array_equal(sweeps[:, 0], sweeps[:, 1])
+    assert_same_state(a, b)
+    a.close()
+    b.close()
+

@@ -167,3 +167,42 @@ def test_a_resting_contact_warm_started_from_its_last_impulse_converges_at_once(
         assert sim.last.sweeps == 1
         assert sim.last.residual < sim.settings.tolerance
     sim.close()
+
+
+# --- session 43's mutation audit of the schedules, batching and the grid ------------------
+def test_the_warm_start_is_extrapolated_once():
+    """With warm_start_extrapolation c the step starts each bond, and each contact that carried
+    an impulse the step before, from R_n + c (R_n - R_n-1) (a contact's with a negative normal
+    part from zero). Kills: the extrapolation applied with 2 c (contacts, bonds)."""
+    from test_batch import pour as bpour
+    c = 0.5
+    sim = bpour(1, settings=SolverSettings(max_sweeps=300, schedule="serial",
+                                           warm_start_extrapolation=c))
+    sim.step(200)
+    assert sim.create_bonds(2e-4) > 20
+    sim.step(5)
+    d0 = sim.state_dict()
+    sim._begin_step()                    # up to the warm start (contacts built, bonds prepared)
+    d1 = sim.state_dict()
+    # bonds: the same bonds, in the same order
+    rb, rb_old = d0["bonds/impulse"], d0["bonds/impulse_prev"]
+    intact = d0["bonds/state"] == 0
+    expect = rb + c * (rb - rb_old)
+    assert np.abs(rb - rb_old)[intact].max() > 1e-3 * np.abs(rb[intact]).max()
+    np.testing.assert_allclose(d1["bonds/impulse"][intact], expect[intact], rtol=1e-12,
+                               atol=1e-15 * np.abs(rb).max())
+    # contacts: matched by pair
+    before = {(int(i), int(j)): (r, o) for i, j, r, o in
+              zip(d0["contacts/i"], d0["contacts/j"], d0["contacts/impulse"],
+                  d0["contacts/impulse_old"])}
+    checked = 0
+    for i, j, r in zip(d1["contacts/i"], d1["contacts/j"], d1["contacts/impulse"]):
+        if (int(i), int(j)) in before and np.any(r != 0.0):
+            rn, ro = before[(int(i), int(j))]
+            if np.any(ro != 0.0) and np.abs(rn - ro).max() > 1e-6 * np.abs(rn).max():
+                np.testing.assert_allclose(r, rn + c * (rn - ro), rtol=1e-9,
+                                           atol=1e-12 * np.abs(rn).max())
+                checked += 1
+    assert checked > 10, checked
+    sim.close()
+
