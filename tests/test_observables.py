@@ -124,3 +124,11 @@ def test_kinetic_energy_counts_the_spin_with_two_fifths_m_r2():
     w = np.array([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0]])
     ke = obs.kinetic_energy(v, w, r, rho)
     assert ke == pytest.approx(0.5 * m[0] * 0.01 + 0.5 * 0.4 * m[1] * r[1] ** 2 * 900.0, rel=1e-14)
+
+
+def test_smooth_window_includes_both_edges():
+    """|x_j - x_i| <= window / 2 on both sides: on integer abscissae with a window of 2 the
+    average of i-1, i, i+1 (exact in floating point), the ends averaging what they have."""
+    x = np.arange(6.0)
+    np.testing.assert_allclose(obs.smooth(x.copy(), x, 2.0), [0.5, 1, 2, 3, 4, 4.5], rtol=0, atol=1e-15)
+

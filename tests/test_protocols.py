@@ -1,0 +1,169 @@
+"""The preparation's phases and the shear's set-up and results (tcd/protocols.py; PHYSICS.md
+sections 7-8) on stub simulations, against hand-worked values (session 43's mutation audit: a
+3 mm amplitude, a frequency read as rad/s, a confinement at 60 mm, one size table for both
+courses, the gap on each side of the split plane and more passed the suite before). No
+simulation runs."""
+import math
+import types
+
+import numpy as np
+import pytest
+
+from tcd import packing, walls
+from tcd.config import parse_scenario
+from tcd.protocols import Prepare, Shear, servo_step, settled
+
+PAPER = 'name = "t"\n\n[[stage]]\nkind = "prepare"\n\n[[stage]]\nkind = "shear"\n'
+
+
+def _stub_sim(top: float, plate: float | None = None):
+    """Two unit grains of 1 mm radius, the highest reaching `top`, and (optionally) a plate."""
+    x = np.array([[0.0, 0.0, 0.001], [0.0, 0.0, top - 0.001]])
+    r = np.array([0.001, 0.001])
+    wl = [walls.plane((0, 0, 0), (0, 0, 1)), walls.cylinder((0, 0, 0), (0, 0, 1), 0.075, (0, 1))]
+    if plate is not None:
+        wl.append(walls.plane((0, 0, plate), (0, 0, -1)))
+    return types.SimpleNamespace(positions=lambda: x, radii=lambda: r, walls=wl)
+
+
+def test_vibration_phase_is_6_mm_at_30_hz_for_one_second_toward_each_course_height():
+    scn = parse_scenario(PAPER)
+    prep = Prepare(scn.stages[0], scn, 1)
+    h = scn.solver.time_step
+    for L in (0, 1):
+        phase, _ = prep.plan(3 * L + 1, _stub_sim(0.07 + 0.06 * L), 0.0)
+        sv = phase.info["servo"]
+        assert phase.name == "vibrate" and phase.info["layer"] == L
+        assert sv["amplitude"] == pytest.approx(6e-3) and sv["frequency"] == pytest.approx(30.0)
+        assert phase.steps == round(1.0 / h) and not phase.settle
+        assert sv["target"] == pytest.approx(0.060 * (L + 1))           # 60 mm, then 120 mm
+        assert sv["v_mean"] == pytest.approx((sv["target"] - sv["z0"]) / 1.0)
+        # the plate can follow the sine: peak speed 2 pi f A plus the descent
+        assert sv["v_max"] == pytest.approx(2 * math.pi * 30.0 * 6e-3 + abs(sv["v_mean"]))
+    phase, _ = prep.plan(6, _stub_sim(0.125, plate=0.125), 0.0)           # confine
+    assert phase.name == "confine" and phase.info["target"] == pytest.approx(0.120)
+    assert phase.info["servo"]["amplitude"] == 0.0
+
+
+def test_servo_plate_oscillates_at_the_frequency_in_hertz():
+    """Below the force limit and the speed cap, the plate is at
+    max(target, z0 + v_mean s) + A sin(2 pi f s), s the time since the phase began."""
+    h, A, f, z0 = 1e-4, 6e-3, 30.0, 0.1
+    plate = walls.plane((0, 0, z0), (0, 0, -1))
+    sim = types.SimpleNamespace(time=0.0, settings=types.SimpleNamespace(time_step=h),
+                                step_index=0, walls=[None, None, plate],
+                                wall_force=lambda k: np.zeros(3))
+    sim.replace_wall = lambda k, w: sim.walls.__setitem__(k, w)
+    sv = {"wall": 2, "z": z0, "z0": z0, "target": 0.0, "t0": 0.0, "amplitude": A,
+          "frequency": f, "force_limit": 1.0, "v_mean": -0.01, "v_max": 10.0}
+    phase = types.SimpleNamespace(info={"servo": sv})
+    for k in range(1, 400):
+        servo_step(sim, phase)
+        sim.time, sim.step_index = k * h, k
+        assert sv["z"] == pytest.approx(z0 - 0.01 * k * h + A * math.sin(2 * math.pi * f * k * h),
+                                        abs=1e-12)
+
+
+def test_settled_compares_the_mass_weighted_rms_speed():
+    """sqrt(sum m v^2 / sum m), m ~ r^3: grains of radius 1 and 2 at 9 and 1 mm/s give
+    sqrt((81 + 8) / 9) mm/s = 3.145 mm/s."""
+    v = np.array([[0.009, 0.0, 0.0], [0.0, 0.0, 0.001]])
+    sim = types.SimpleNamespace(velocities=lambda: v, radii=lambda: np.array([1.0, 2.0]))
+    rms = math.sqrt((81 + 8) / 9) * 1e-3
+    assert settled(sim, rms * 1.001) and not settled(sim, rms * 0.999)
+
+
+def test_each_course_gets_its_own_size_table():
+    scn = parse_scenario(PAPER)
+    c = scn.stages[0]
+    prep = Prepare(c, scn, 1)
+    for L, course in enumerate(c.courses):
+        r = prep.layer_radii(L)
+        d = np.round(2e3 * r / c.size_scale, 6)
+        n = packing.class_counts(course, c.layer_particle_count(course))
+        assert [int(np.count_nonzero(d == dk)) for dk in (2.0, 5.6, 8.0, 11.2, 16.0)] == n.tolist()
+    assert 2 * prep.layer_radii(1).max() < 0.016           # no 16 mm grain in the surface course
+
+
+def test_shear_rings_split_at_mid_height_with_the_gap_centred_and_the_upper_ring_moving():
+    """A sample whose grains reach 118 mm under a plate at 120 mm: H = 118 mm, the split plane
+    at 59 mm, the 1 mm gap from 58.5 to 59.5 mm; the upper ring and the top plate move at
+    50 mm/min along x, the lower ring stays."""
+    scn = parse_scenario(PAPER)
+    c = scn.stages[1]
+    shear = Shear(c, scn, 1)
+    x = np.array([[0.0, 0.0, 0.01], [0.0, 0.0, 0.117]])
+    r = np.array([0.001, 0.001])
+    wl = [walls.plane((0, 0, 0), (0, 0, 1), radius=0.075),
+          walls.cylinder((0, 0, 0), (0, 0, 1), 0.075, (0, 0.2)),
+          walls.plane((0, 0, 0.12), (0, 0, -1), radius=0.075)]
+    sim = types.SimpleNamespace(positions=lambda: x, radii=lambda: r, walls=wl, bond_law=None,
+                                set_walls=lambda w: None, create_bonds=lambda tol: 0,
+                                close=lambda: None)
+    sim.renumber = lambda order: sim
+    phase, _ = shear.plan(0, sim, 0.0)
+    bottom, lower, upper, top = phase.walls
+    assert phase.info["z_interface"] == pytest.approx(0.059)
+    assert lower.extent[1] == pytest.approx(0.0585) and upper.extent[0] == pytest.approx(0.0595)
+    assert lower.extent[0] <= 0.0 and upper.extent[1] >= 0.118
+    v = 50e-3 / 60
+    assert lower.motion == "fixed" and bottom.motion == "fixed"
+    assert upper.motion == "constant" and upper.velocity == pytest.approx((v, 0.0, 0.0))
+    assert top.motion == "constant" and top.velocity == pytest.approx((v, 0.0, 0.0))
+    assert top.point[2] == pytest.approx(0.118)
+
+
+def test_shear_finish_residual_at_the_end_and_near_plane_band_a_quarter_ring():
+    """The peak and the residual (the smoothed stress at the end) of a shear, and: ring height
+    60 mm: bonds within 15 mm of the split plane are near it. Four bonds, at
+    10 and 20 mm above it (intact, midpoints) and broken at 5 and 25 mm below it."""
+    scn = parse_scenario(PAPER)
+    shear = Shear(scn.stages[1], scn, 1)
+    z_i = 0.06
+    x = np.array([[0, 0, z_i + 0.009], [0, 0, z_i + 0.011], [0, 0, z_i + 0.019],
+                  [0, 0, z_i + 0.021], [0, 0, 0.1], [0, 0, 0.1]], dtype=float)
+    st = {"bonds/state": np.array([0, 0, 1, 2]), "bonds/i": np.array([0, 2, 4, 4]),
+          "bonds/j": np.array([1, 3, 5, 5]),
+          "bonds/broken_pos": np.array([[0, 0, 0], [0, 0, 0], [0, 0, z_i - 0.005],
+                                        [0, 0, z_i - 0.025]], dtype=float)}
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, n=6)
+    phase = types.SimpleNamespace(info={"z_interface": z_i, "sample_height": 0.12})
+    d = np.linspace(0, 2.5e-3, 51)
+    # a rise to 1 MPa at 1 mm, then a drop to a 0.3 MPa plateau: the residual is its end
+    tau = np.where(d <= 1e-3, 1e6 * d / 1e-3, np.where(d < 1.5e-3, 1e6, 0.3e6))
+    out = shear.finish(sim, phase, {"displacement": d, "shear_stress": tau})
+    assert out["residual_MPa"] == pytest.approx(0.3, rel=1e-12)
+    assert out["tau_peak_MPa"] == pytest.approx(1.0, rel=1e-12)
+    assert out["near_plane_band_mm"] == pytest.approx(15.0)
+    assert out["bonds_near_plane_fraction"] == pytest.approx(0.5)
+    assert out["broken_near_plane_fraction"] == pytest.approx(0.5)
+    assert (out["bonds_broken_tension"], out["bonds_broken_shear"]) == (1, 1)
+
+
+def test_prepared_layers_packing_fractions_average_to_the_sample_s():
+    """Prepare.finish on a stub: the per-layer packing fractions are each layer's slab (bottom
+    plate, equal-volume interface, top plate), so weighted by the slab heights they average to
+    the sample's, and each is its own grains' volume over its slab (no interpenetration here)."""
+    scn = parse_scenario(PAPER)
+    prep = Prepare(scn.stages[0], scn, 1)
+    xy = np.array([[0.03, 0.0], [-0.03, 0.0], [0.0, 0.03], [0.0, -0.03]])
+    x = np.vstack([np.column_stack([xy, np.full(4, 0.01)]), np.column_stack([xy, np.full(4, 0.03)])])
+    r = np.array([0.01] * 4 + [0.005] * 4)
+    layer = np.array([0] * 4 + [1] * 4, np.int32)
+    H = 0.04
+    sim = types.SimpleNamespace(
+        n=8, time=0.0, positions=lambda: x, radii=lambda: r,
+        state_dict=lambda: {"particles/layer": layer},
+        walls=[None, None, walls.plane((0, 0, H), (0, 0, -1))],
+        contact_arrays=lambda: {"i": np.array([0]), "j": np.array([8]),
+                                "impulse": np.zeros((1, 3)), "gap": np.array([0.0])})
+    out = prep.finish(sim)
+    zb = out["layer_interfaces_mm"][0] * 1e-3
+    assert 0.02 - 1e-9 <= zb <= 0.025           # anywhere in the empty gap between them
+    area = math.pi * 0.075**2
+    pf = out["packing_fraction_per_layer"]
+    assert pf[0] == pytest.approx(4 * 4 / 3 * math.pi * 0.01**3 / (area * zb), rel=1e-9)
+    assert pf[1] == pytest.approx(4 * 4 / 3 * math.pi * 0.005**3 / (area * (H - zb)), rel=1e-9)
+    h = np.array(out["layer_heights_mm"]) * 1e-3
+    assert float(np.dot(pf, h)) / H == pytest.approx(out["packing_fraction"], rel=1e-12)
+
