@@ -33,14 +33,15 @@ def test_the_laws_creep_compliance_is_physics_md_s():
 
 
 def pair(r_i, r_j, *, mode="paper", h=2e-3, gravity=(0, 0, 0), fix_i=True, lock_j_rotation=True,
-         yield_stress=SIGMA_Y, friction_after_break=0.7, theta=1.0):
-    """Two touching spheres along x, bonded; i fixed, j free (rotation locked if asked)."""
+         yield_stress=SIGMA_Y, friction_after_break=0.7, theta=1.0, **law):
+    """Two touching spheres along x, bonded; i fixed, j free (rotation locked if asked); `law`:
+    other BondLaw parameters (the Burgers stiffnesses and viscosities)."""
     x = np.array([[0.0, 0, 0], [r_i + r_j, 0, 0]])
     sim = Simulation([r_i, r_j], x, fixed=[fix_i, False],
                      settings=SolverSettings(time_step=h, tolerance=1e-12, max_sweeps=200,
                                              gravity=gravity, theta=theta),
                      bond_law=BondLaw(mode=mode, yield_stress=yield_stress,
-                                      friction_after_break=friction_after_break),
+                                      friction_after_break=friction_after_break, **law),
                      domain=((-0.02,) * 3, (0.04, 0.02, 0.02)))
     assert sim.create_bonds(gap_tolerance=1e-6) == 1
     if lock_j_rotation:
@@ -114,18 +115,7 @@ def test_relaxation_under_held_displacement(mode, precision):
     delta0 = 1e-5
     # the held displacement is resolved to a position quantum: relative error ~ quantum/delta0
     rtol = max(1e-6, 20 * position_quantum(precision) / delta0)
-    sim = pair(0.004, 0.004, mode=mode, h=h)
-    put(sim.particles.inv_mass, [0.0, 0.0])       # both held
-    x = sim.positions()
-    x[1, 0] += delta0
-    sim.set_positions(x)
-    times, forces = [], []
-    for k in range(1, 4001):                       # 20 s
-        sim.step()
-        if k % 100 == 0:
-            times.append(k * h)
-            forces.append(-sim.state_dict()["bonds/impulse"][0, 0] / h)   # tension positive
-    times, forces = np.array(times), np.array(forces)
+    times, forces = held_apart(pair(0.004, 0.004, mode=mode, h=h), delta0, h, 4000)   # 20 s
     if mode == "burgers":
         disc, exact = laws.burgers_relaxation_np(delta0, times, h, K_M, ETA_M, K_K, ETA_K)
         np.testing.assert_allclose(forces, disc, rtol=rtol)
@@ -171,6 +161,22 @@ def test_a_turned_bond_carries_its_tangential_history_into_the_new_tangent_plane
                                    -h * d * turned / (2 * (1 + NU) * J(h)),
                                    rtol=max(tol, 1e-9), atol=tol * h * d / J(h))
     assert sim.bonds_intact_count() == 1
+
+
+def held_apart(sim, delta0, h, steps):
+    """Hold both spheres of `pair` delta0 further apart for `steps` steps; return the times and
+    the bond's tension (N, positive) every 100 steps."""
+    put(sim.particles.inv_mass, [0.0, 0.0])       # both held
+    x = sim.positions()
+    x[1, 0] += delta0
+    sim.set_positions(x)
+    times, forces = [], []
+    for k in range(1, steps + 1):
+        sim.step()
+        if k % 100 == 0:
+            times.append(k * h)
+            forces.append(-sim.state_dict()["bonds/impulse"][0, 0] / h)
+    return np.array(times), np.array(forces)
 
 
 def ramp_until_break(sim, direction, rate, h, steps):
@@ -538,16 +544,8 @@ def test_creep_compliance_with_four_distinct_parameters():
 
 
 def distinct_pair(mode, h):
-    r = 0.004
-    sim = Simulation([r, r], [[0.0, 0, 0], [2 * r, 0, 0]], fixed=[True, False],
-                     settings=SolverSettings(time_step=h, tolerance=1e-12, max_sweeps=200,
-                                             gravity=(0, 0, 0)),
-                     bond_law=BondLaw(mode=mode, maxwell_stiffness=KM4, maxwell_viscosity=EM4,
-                                      kelvin_stiffness=KK4, kelvin_viscosity=EK4),
-                     domain=((-0.02,) * 3, (0.04, 0.02, 0.02)))
-    assert sim.create_bonds(gap_tolerance=1e-6) == 1
-    put(sim.particles.inv_inertia, [0.0, 0.0])
-    return sim
+    return pair(0.004, 0.004, mode=mode, h=h, maxwell_stiffness=KM4, maxwell_viscosity=EM4,
+                kelvin_stiffness=KK4, kelvin_viscosity=EK4)
 
 
 @pytest.mark.parametrize("mode", ["burgers", "paper"])
@@ -557,18 +555,7 @@ def test_relaxation_with_four_distinct_parameters(mode, precision):
     closed form), both to the resolution of delta0 in positions."""
     h, delta0 = 5e-3, 1e-5
     rtol = max(1e-6, 20 * position_quantum(precision) / delta0)
-    sim = distinct_pair(mode, h)
-    put(sim.particles.inv_mass, [0.0, 0.0])
-    x = sim.positions()
-    x[1, 0] += delta0
-    sim.set_positions(x)
-    times, forces = [], []
-    for k in range(1, 2001):                      # 10 s
-        sim.step()
-        if k % 100 == 0:
-            times.append(k * h)
-            forces.append(-sim.state_dict()["bonds/impulse"][0, 0] / h)
-    times, forces = np.array(times), np.array(forces)
+    times, forces = held_apart(distinct_pair(mode, h), delta0, h, 2000)     # 10 s
     if mode == "burgers":
         disc, exact = laws.burgers_relaxation_np(delta0, times, h, KM4, EM4, KK4, EK4)
         np.testing.assert_allclose(disc, exact, rtol=0.01)
