@@ -1,6 +1,9 @@
 """The benchmarks' own bookkeeping (their speed is measured by `tcd bench`, never here)."""
 import csv
+import math
+import types
 
+import numpy as np
 import pytest
 
 from tcd import bench
@@ -113,3 +116,93 @@ def test_a_trace_into_a_folder_that_cannot_be_written_is_refused_before_the_run(
         bench.check_trace(str(blocker / "t.csv"))
     with pytest.raises(ValueError, match="cannot write into /proc"):
         bench.check_trace("/proc/t.csv")
+
+
+# --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------
+class _BedStub:
+    """What bench.bed_metrics reads of a Simulation."""
+
+    def __init__(self, x, r, gap):
+        self._x, self._r, self._gap = np.asarray(x, float), np.asarray(r, float), np.asarray(gap, float)
+
+    def positions(self):
+        return self._x.copy()
+
+    def radii(self):
+        return self._r.copy()
+
+    def contact_arrays(self):
+        m = len(self._gap)
+        return {"i": np.zeros(m, int), "j": np.ones(m, int), "gap": self._gap.copy()}
+
+
+def test_bed_metrics_are_the_documented_closed_forms():
+    """highest top = max(z + r); packing fraction = sphere volume / (pi R^2 top);
+    max_overlap_ratio = largest interpenetration / smallest DIAMETER; outside counts centres
+    beyond the mould (not grains that only poke through it)."""
+    r = np.array([0.01, 0.02, 0.005, 0.005])
+    # third: centre outside the mould; fourth: pokes through it, centre inside (not counted)
+    x = np.array([[0.0, 0.0, 0.01], [0.03, 0.0, 0.03], [0.0, 0.08, 0.005], [0.072, 0.0, 0.005]])
+    sim = _BedStub(x, r, gap=[-0.001, 0.0005, -0.0002])
+    m = bench.bed_metrics(sim, radius=0.075)
+    assert m["highest_top_m"] == pytest.approx(0.05, rel=1e-12)
+    volume = 4.0 / 3.0 * math.pi * np.sum(r**3)
+    assert m["packing_fraction"] == pytest.approx(volume / (math.pi * 0.075**2 * 0.05), rel=1e-12)
+    assert m["max_overlap_ratio"] == pytest.approx(0.001 / 0.01, rel=1e-12)   # r.min() = 5 mm
+    assert m["outside"] == 1 and m["contacts"] == 3
+    # no interpenetration: ratio 0, never negative
+    assert bench.bed_metrics(_BedStub(x, r, gap=[0.001]))["max_overlap_ratio"] == 0.0
+
+
+class _ClockSim:
+    """A Simulation stand-in whose every step costs one second of a fake clock."""
+
+    def __init__(self, clock):
+        self.clock, self.steps = clock, 0
+
+    def step(self):
+        self.clock[0] += 1.0
+        self.steps += 1
+        return types.SimpleNamespace(sweeps=self.steps, residual=0.0, contacts=7,
+                                     time=self.steps * 1e-3, colours=0)
+
+
+def test_the_loop_times_only_the_steps_after_the_compiling_ones(monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: clock[0])
+    sim = _ClockSim(clock)
+    compile_s, loop_s, sweeps, _, _, per_step = bench._loop(sim, 10)
+    assert sim.steps == 10
+    assert compile_s == bench.WARMUP_STEPS == 2
+    assert loop_s == 10 - bench.WARMUP_STEPS
+    assert sweeps.tolist() == list(range(3, 11))           # the timed steps' records only
+    assert per_step["wall_s"].tolist() == [1.0] * 8
+
+
+def test_pour_divides_the_loop_time_by_particles_times_timed_steps(monkeypatch):
+    """seconds_per_particle_step = loop time / (particles * timed steps); mean_sweeps the mean
+    of the timed steps'; bytes per particle = memory / particles."""
+    n, h = 40, 2e-4
+    r = np.full(n, 0.005)
+    x = np.zeros((n, 3))
+    x[:, 2] = 0.005 + 0.01 * np.arange(n)
+    sim = _BedStub(x, r, gap=[-1e-4])
+    sim.settings = types.SimpleNamespace(time_step=h, max_sweeps=100, check_every=1,
+                                         warm_start_extrapolation=0.0, convergence="impulse")
+    sim.schedule, sim.sweep_order_used, sim.acceleration_used = "serial", "symmetric", "nncg"
+    sim.resident_block = {}
+    sim.memory_bytes = lambda: 8000
+    steps = 10                                                  # time 2e-3 s
+    sweeps = np.array([1, 1, 1, 1, 1, 1, 1, 9], float)          # mean 2, median 1
+    per_step = {"wall_s": np.full(8, 0.5), "contacts": np.ones(8, int),
+                "time_s": h * np.arange(3, 11)}
+    monkeypatch.setattr(bench, "_init", lambda *a: None)
+    monkeypatch.setattr(bench, "pour_setup", lambda *a, **k: sim)
+    monkeypatch.setattr(bench, "_loop", lambda s, k: (1.0, 4.0, sweeps, np.zeros(8), 0, per_step))
+    out = bench.pour(particles=n, time=steps * h)
+    assert out["steps"] == steps
+    assert out["seconds_per_particle_step"] == pytest.approx(4.0 / (n * 8), rel=1e-12)
+    assert out["mean_sweeps"] == pytest.approx(2.0)
+    assert out["memory_bytes_per_particle"] == pytest.approx(8000 / n)
+    assert out["loop_wall_s"] == 4.0 and out["compile_wall_s"] == 1.0
+

@@ -641,3 +641,23 @@ def test_a_bond_breaks_midway_across_its_gap(precision):
     pos = sim.state_dict()["bonds/broken_pos"][0]
     np.testing.assert_allclose(pos, [0.004 + 0.5 * gap_beg, 0, 0], rtol=0,
                                atol=max(1e-9, 4 * position_quantum(precision, 0.005)))
+
+
+# --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------
+def test_bond_state_counts_are_intact_tension_shear_in_that_order(backend):
+    """bonds_state_counts() = (intact, broken in tension, broken in shear): three bonds of a
+    row of grains, their states set through a state (1 tension, 2 shear)."""
+    from tcd import solver
+    from tcd.simulation import Simulation, SolverSettings
+    r = 0.004
+    x = [[2 * r * k, 0.0, 0.0] for k in range(4)]
+    sim = Simulation([r] * 4, x, settings=SolverSettings(gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.01,) * 3, (0.04, 0.01, 0.01)))
+    assert sim.create_bonds(gap_tolerance=1e-7) == 3
+    assert sim.bonds_state_counts() == (3, 0, 0)
+    d = sim.state_dict()
+    d["bonds/state"] = np.array([solver.BROKEN_SHEAR, solver.BROKEN_TENSION, solver.BROKEN_SHEAR],
+                                d["bonds/state"].dtype)
+    sim.load_state_dict(d)
+    assert sim.bonds_state_counts() == (0, 1, 2)
+

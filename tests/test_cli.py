@@ -589,3 +589,20 @@ def test_a_grid_too_large_for_the_grains_names_the_scenario_keys_to_change(tmp_p
     err = capsys.readouterr().err
     assert f"tcd: error: {scenario}: broad-phase grid of" in err and "Traceback" not in err
     assert "column_height_mm or cylinder_diameter_mm, or raise its size_scale" in err
+
+
+# --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------
+def test_repeat_reports_the_median_run_not_the_mean():
+    """--repeat N reports the median run whole (its figure and its other fields), not the mean
+    of the figures: with one slow outlier the two differ (the CLI test's 3, 1, 2 had mean ==
+    median)."""
+    from tcd.cli import median_run
+    figures = iter([9e-6, 1e-6, 2e-6])
+
+    def run(**kw):
+        value = next(figures)
+        return {"seconds_per_particle_step": value, "run": value}
+    out = median_run(run, {}, 3)
+    assert out["seconds_per_particle_step"] == 2e-6 and out["run"] == 2e-6
+    assert out["repeats_seconds_per_particle_step"] == [9e-6, 1e-6, 2e-6]
+

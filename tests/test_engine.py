@@ -990,3 +990,121 @@ def test_broad_phase_on_a_grid_of_unequal_sides(box, factor):
     ref.close()
     sim.close()
 
+
+# --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------
+def test_a_wall_rests_at_its_point_until_its_start():
+    """Before `start` the wall is at `point` (no backward extrapolation of the drift or the
+    sine); the step velocity of a step that straddles the start is the displacement over the
+    step's part after it, divided by the whole step."""
+    from tcd import walls
+    v, A, f, t0 = (0.0, 0.0, -0.1), (0.0, 0.0, 1e-3), 5.0, 1.0
+    for w in (walls.plane((0, 0, 0.05), (0, 0, -1), motion="constant", velocity=v, start=t0),
+              walls.plane((0, 0, 0.05), (0, 0, -1), motion="sine", velocity=v, amplitude=A,
+                          frequency=f, start=t0)):
+        for t in (0.0, 0.5, t0 - 1e-9, t0):
+            np.testing.assert_array_equal(w.position(t), [0, 0, 0.05])
+        np.testing.assert_array_equal(w.step_velocity(0.5, 1e-3), [0, 0, 0])
+        s = 0.25e-3                                                  # the part after t0
+        z = -0.1 * s + (A[2] * math.sin(2 * math.pi * f * s) if w.motion == "sine" else 0.0)
+        np.testing.assert_allclose(w.step_velocity(t0 - 0.75e-3, 1e-3), [0, 0, z / 1e-3],
+                                   rtol=1e-9, atol=1e-15)
+
+
+def test_a_wall_direction_is_stored_as_a_unit_vector():
+    """The contact kernel takes `direction` as unit (plane gap = (x - p).d - r): a normal or an
+    axis given with another length is normalised, not used as is."""
+    from tcd import walls
+    assert walls.plane((0, 0, 0), (0, 0, 2.5)).direction == (0.0, 0.0, 1.0)
+    np.testing.assert_allclose(walls.cylinder((0, 0, 0), (3, 0, 4), 0.05, (0, 0.1)).direction,
+                               [0.6, 0.0, 0.8], rtol=1e-15)
+
+
+def test_a_rim_contact_is_listed_within_the_alert_distance_beyond_the_end(backend):
+    """The rim is looked for up to 2 r beyond a cylinder's end (an alert margin): a sphere
+    whose centre is 1.05 r below the end, on the rim's radius, is 0.05 r from the rim (below
+    the alert distance, 0.1 r): its contact is listed, with that gap and the axial normal."""
+    from tcd import walls
+    from tcd.simulation import Simulation, SolverSettings
+    R, r, lo = 0.02, 0.004, 0.01
+    x = np.array([[R, 0.0, lo - 1.05 * r]])
+    wl = [walls.cylinder((0, 0, 0), (0, 0, 1), R, (lo, 0.05))]
+    sim = Simulation([r], x, walls=wl, settings=SolverSettings(gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.03, -0.03, -0.01), (0.03, 0.03, 0.06)))
+    sim.step()
+    c = sim.contact_arrays()
+    assert c["j"].tolist() == [1]
+    assert c["gap"][0] == pytest.approx(0.05 * r, rel=1e-5)
+    np.testing.assert_allclose(c["normal"][0], [0, 0, 1], atol=1e-6)
+
+
+def test_a_state_records_where_a_moving_wall_is_now(backend):
+    """state_dict's walls/point is each wall's position at the simulation's time (what the
+    renderer, export and analysis draw and measure), not its motion's anchor `point`."""
+    from tcd import walls
+    from tcd.simulation import Simulation, SolverSettings
+    h = 1e-3
+    plate = walls.plane((0, 0, 0.05), (0, 0, -1), motion="constant", velocity=(0.0, 0.0, -0.1))
+    floor = walls.plane((0, 0, 0), (0, 0, 1))
+    sim = Simulation([0.004], [[0, 0, 0.004]], walls=[floor, plate],
+                     settings=SolverSettings(time_step=h, gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.01, -0.01, 0.0), (0.01, 0.01, 0.06)))
+    sim.step(5)
+    d = sim.state_dict()
+    np.testing.assert_allclose(d["walls/point"], [[0, 0, 0], [0, 0, 0.05 - 0.1 * sim.time]],
+                               rtol=1e-12, atol=1e-15)
+    assert sim.time == pytest.approx(5 * h)
+
+
+def test_a_loaded_state_gives_back_the_last_wall_forces(backend):
+    """load_state_dict restores the last step's wall forces (a servo plate reads wall_force
+    before the next step of a resumed run): a sphere resting on a floor, weight m g."""
+    from tcd import walls
+    from tcd.simulation import Simulation, SolverSettings
+
+    def make():
+        return Simulation([0.004], [[0, 0, 0.004]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                          settings=SolverSettings(time_step=1e-3, tolerance=1e-10),
+                          domain=((-0.01,) * 3, (0.01,) * 3))
+    a = make()
+    a.step(3)
+    weight = a.wall_force(0)
+    assert weight[2] < 0 and abs(weight[2]) > 1e-4              # the grain presses the floor
+    b = make()
+    b.load_state_dict(a.state_dict())
+    np.testing.assert_array_equal(b.wall_force(0), weight)
+
+
+def test_a_loaded_state_keeps_the_external_forces(backend):
+    """set_external_force's forces are part of the state: a loaded state applies them (the
+    resumed grain accelerates as the original, not under gravity alone)."""
+    from tcd.simulation import Simulation, SolverSettings
+
+    def make():
+        return Simulation([0.004, 0.004], [[0, 0, 0.02], [0.02, 0, 0.02]],
+                          settings=SolverSettings(time_step=1e-3, gravity=(0.0, 0.0, 0.0)),
+                          domain=((-0.05,) * 3, (0.05,) * 3))
+    a = make()
+    f = np.array([[1e-3, 0.0, 0.0], [0.0, -2e-3, 0.0]])
+    a.set_external_force(f)
+    b = make()
+    b.load_state_dict(a.state_dict())
+    np.testing.assert_array_equal(b.state_dict()["particles/f_ext"], a.state_dict()["particles/f_ext"])
+    a.step()
+    b.step()
+    np.testing.assert_array_equal(b.velocities(), a.velocities())
+    assert np.all(np.abs(b.velocities()[[0, 1], [0, 1]]) > 0)
+
+
+def test_set_velocities_sets_the_translational_velocities_only(backend):
+    """set_velocities: one 3-vector per particle or one for all, read back by velocities(); the
+    spins are untouched (set_angular_velocities sets those)."""
+    from tcd.simulation import Simulation, SolverSettings
+    sim = Simulation([0.004, 0.004], [[0, 0, 0.02], [0.02, 0, 0.02]],
+                     settings=SolverSettings(gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.05,) * 3, (0.05,) * 3))
+    sim.set_velocities([[0.1, 0.0, 0.0], [0.0, -0.2, 0.0]])
+    np.testing.assert_allclose(sim.velocities(), [[0.1, 0.0, 0.0], [0.0, -0.2, 0.0]], rtol=1e-6)
+    np.testing.assert_array_equal(sim.angular_velocities(), np.zeros((2, 3)))
+    sim.set_velocities((0.0, 0.0, 0.5))
+    np.testing.assert_allclose(sim.velocities(), [[0.0, 0.0, 0.5]] * 2, rtol=1e-6)
+

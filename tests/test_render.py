@@ -362,3 +362,93 @@ def test_load_frame_fills_optional_particle_data_and_orders_frames(tmp_path):
         del f["frames/000000/particles/radius"]
     with pytest.raises(ValueError, match=r"minimal\.h5: frame 000000.*radius"):
         render.load_frame(path, 0)
+
+
+# --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------
+def test_speed_and_vx_colour_values_and_their_default_ranges():
+    """speed is |v| of all three components (mm/s), vx the signed x component; the vx scale is
+    symmetric about 0 (so that rest is the colormap's middle), the speed scale starts at 0."""
+    from tcd import render
+    frame = {"v": np.array([[0.0, 0.0, -0.003], [0.003, -0.004, 0.0], [-0.002, 0.0, 0.0]])}
+    np.testing.assert_allclose(render.particle_values(frame, "speed"), [3.0, 5.0, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(render.particle_values(frame, "vx"), [0.0, 3.0, -2.0], rtol=1e-12)
+    assert render.default_range("vx", np.array([-2.0, 1.0])) == (-2.0, 2.0)
+    assert render.default_range("speed", np.array([1.0, 3.0])) == (0.0, 3.0)
+
+
+def test_the_perspective_field_of_view_is_vertical():
+    """fov_deg is the vertical angle: half height tan(fov/2), half width that times W/H."""
+    from tcd.render import Camera
+    cam = Camera("perspective", eye=(0.0, -1.0, 0.0), target=(0.0, 0.0, 0.0), fov_deg=90.0)
+    half_w, half_h = cam.half_extents(200, 100)
+    assert half_h == pytest.approx(1.0, rel=1e-12) and half_w == pytest.approx(2.0, rel=1e-12)
+    # a point at 45 degrees above the axis lands on the top edge of the image
+    (col, row), = cam.project(np.array([[0.0, 0.0, 1.0]]), 200, 100)[0]
+    assert row == pytest.approx(0.0, abs=1e-9) and col == pytest.approx(100.0, abs=1e-9)
+
+
+def test_a_section_view_frames_only_the_grains_the_cut_leaves():
+    """With a cutting plane the preset camera frames the grains on the kept side (centre within
+    a radius of it): a grain far on the removed side widens nothing."""
+    from tcd import render
+    x = np.array([[0.0, 0.01, 0.0], [0.2, -0.05, 0.0]])
+    r = np.array([0.005, 0.005])
+    plane = (np.zeros(3), np.array([0.0, 1.0, 0.0]))       # keeps y >= 0, looks along +y
+    cam = render._resolve_camera("front", x, r, 100, 100, plane)
+    assert cam.ortho_width == pytest.approx(1.08 * 0.01, rel=1e-9)
+    np.testing.assert_allclose(np.asarray(cam.target)[[0, 2]], [0.0, 0.0], atol=1e-12)
+    whole = render._resolve_camera("front", x, r, 100, 100, None)
+    assert whole.ortho_width > 10 * cam.ortho_width                # the control: both grains
+
+
+def _velocity_states(path, v, ring_v):
+    """Three frames of grains `v` (N,3) in a mould, a ring moving at ring_v (m/s) along x."""
+    import h5py
+    n = len(v)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(schema_version=1, tcd_version="test", scenario="")
+        for k, t in enumerate((0.0, 0.5, 1.0)):
+            g = f.create_group(f"frames/{k:06d}")
+            g.attrs.update(time=t, step=k, stage="shear")
+            x = np.zeros((n, 3))
+            x[:, 0] = 0.002 * (np.arange(n) % 9) - 0.008
+            x[:, 2] = 0.002 + 0.002 * (np.arange(n) // 9)
+            g["particles/x"] = x
+            g["particles/v"] = np.asarray(v, float)
+            g["particles/radius"] = np.full(n, 0.001)
+            g["walls/kind"] = np.array([0, 1], np.int32)
+            g["walls/point"] = np.array([[0, 0, 0], [ring_v * t, 0, 0.0]], float)
+            g["walls/direction"] = np.array([[0, 0, 1], [0, 0, 1]], float)
+            g["walls/radius"] = np.full(2, 0.02)
+            g["walls/extent"] = np.array([[0, 0], [0, 0.06]], float)
+            g["walls/force"] = np.zeros((2, 3))
+
+
+def test_fig3_colours_signed_vx_and_tops_the_speed_scale_at_the_99th_percentile(tmp_path,
+                                                                                  monkeypatch):
+    """Fig. 3 colours v_x / v_ring signed (a grain moving against the ring is below rest, at
+    the scale's bottom, not mirrored to +1); without a moving ring it colours |v| on a scale
+    topped by the 99th percentile of the speeds (one grain falling at 1 m/s among 200 at
+    1 mm/s leaves the scale at 1 mm/s)."""
+    from tcd import render
+    seen = []
+    real = render.value_colors
+
+    def spy(values, cmap, lo, hi):
+        seen.append((np.array(values), lo, hi))
+        return real(values, cmap, lo, hi)
+    monkeypatch.setattr(render, "value_colors", spy)
+    ring_v = 1e-3
+    _velocity_states(tmp_path / "a.h5", [[-ring_v, 0, 0], [ring_v, 0, 0]], ring_v)
+    render.figure_velocity(tmp_path / "a.h5", tmp_path / "a.png", [1, 2], panel_width=64)
+    assert seen and all(np.allclose(vals, [-1.0, 1.0]) and (lo, hi) == render.VELOCITY_RANGE
+                        for vals, lo, hi in seen)
+    seen.clear()
+    v = np.zeros((201, 3))
+    v[:, 2] = -1e-3
+    v[0, 2] = -1.0
+    _velocity_states(tmp_path / "b.h5", v, 0.0)
+    render.figure_velocity(tmp_path / "b.h5", tmp_path / "b.png", [1, 2], panel_width=64)
+    assert seen and all(lo == 0.0 and hi == pytest.approx(1.0, rel=1e-9) for _, lo, hi in seen)
+    np.testing.assert_allclose(seen[0][0][:3], [1000.0, 1.0, 1.0], rtol=1e-9)
+
