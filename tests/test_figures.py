@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tcd import io
-from tcd.figures import (FigureWarning, make_figures, peak_of, render_frames, smooth,
-                         table2_rows)
+from tcd.figures import (FigureWarning, load_sample, make_figures, peak_of, render_frames,
+                         smooth, summary_from_samples, table2_rows)
 
 pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"),
               pytest.mark.filterwarnings("ignore:.*summary.json missing:UserWarning"),
@@ -112,6 +112,14 @@ def test_table2_rows_fall_back_to_samples_when_mean_is_missing():
     assert run["tau_MPa"] == pytest.approx(0.95)
     assert run["d_mm"] == pytest.approx(2.2)
     assert run["d_std_mm"] == pytest.approx(0.2)
+    # three samples with one high: the mean (not the median) and the population std
+    summary = {"samples": [{"tau_peak_MPa": 0.8, "d_peak_mm": 2.0},
+                           {"tau_peak_MPa": 0.9, "d_peak_mm": 2.1},
+                           {"tau_peak_MPa": 1.3, "d_peak_mm": 2.9}]}
+    run = table2_rows(summary)[2]
+    assert run["tau_MPa"] == pytest.approx(1.0) and run["d_mm"] == pytest.approx(7.0 / 3.0)
+    assert run["tau_std_MPa"] == pytest.approx(math.sqrt((0.04 + 0.01 + 0.09) / 3))
+    assert run["tau_rel_error"] == pytest.approx(1.0 / 0.898 - 1.0)
 
 
 # --- run directories -------------------------------------------------------------------------
@@ -346,19 +354,7 @@ def test_a_failing_render_is_skipped_with_a_warning(tmp_path, monkeypatch):
 
 
 # --- session 43's mutation audit: the study's statistics and the default smoothing ------------
-def test_table2_falls_back_to_the_mean_and_population_std_of_three_samples():
-    from tcd.figures import table2_rows
-    summary = {"samples": [{"tau_peak_MPa": 0.8, "d_peak_mm": 2.0},
-                           {"tau_peak_MPa": 0.9, "d_peak_mm": 2.1},
-                           {"tau_peak_MPa": 1.3, "d_peak_mm": 2.9}]}
-    run = table2_rows(summary)[2]
-    assert run["tau_MPa"] == pytest.approx(1.0) and run["d_mm"] == pytest.approx(7.0 / 3.0)
-    assert run["tau_std_MPa"] == pytest.approx(math.sqrt((0.04 + 0.01 + 0.09) / 3))
-    assert run["tau_rel_error"] == pytest.approx(1.0 / 0.898 - 1.0)
-
-
 def test_summary_from_samples_is_the_mean_and_population_std():
-    from tcd.figures import summary_from_samples
     samples = [types.SimpleNamespace(seed=str(k), tau_peak=t * 1e6, d_peak=d * 1e-3)
                for k, (t, d) in enumerate([(0.8, 2.0), (0.9, 2.1), (1.3, 2.9)])]
     out = summary_from_samples(samples)
@@ -370,7 +366,6 @@ def test_series_without_a_window_is_smoothed_over_0_1_mm(tmp_path):
     """A series file without `smoothing_window` (nor the runner's peak): the default window is
     0.1 mm of displacement (shear.smoothing_window_mm), so a triangle peaking at 1.2 mm of a
     2.5 mm travel peaks there, not at the end of a curve averaged flat."""
-    from tcd.figures import load_sample
     d = np.linspace(0.0, 2.5e-3, 2526)      # the half window is 50.5 intervals: no edge ties
     tau = 1e6 * np.maximum(0.0, 1.0 - np.abs(d - 1.2e-3) / 1.2e-3) + 1e5
     folder = tmp_path / "sample_1"

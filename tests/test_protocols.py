@@ -85,6 +85,23 @@ def test_each_course_gets_its_own_size_table():
     assert 2 * prep.layer_radii(1).max() < 0.016           # no 16 mm grain in the surface course
 
 
+def test_shear_record_moves_at_50_mm_per_min_and_divides_by_pi_R2():
+    """The shear's measure on the paper's default stage (tests/test_runner.py checks it on a
+    run's series): a stub simulation 60 s into the shear whose grains push the ring (wall 2) by
+    1000 N along +x (the wall force -1000 N): the ring has moved 50 mm, tau = 1000 / (pi
+    0.075^2) = 56.588 kPa."""
+    scn = parse_scenario(PAPER)
+    shear = Shear(scn.stages[1], scn, 1)
+    forces = {2: np.array([-1000.0, 0.0, 0.0]), 3: np.zeros(3)}
+    sim = types.SimpleNamespace(time=70.0, wall_force=lambda k: forces[k],
+                                bonds_state_counts=lambda: (5, 0, 0))
+    phase = types.SimpleNamespace(info={"radius": 0.075, "t0": 10.0})
+    rec = shear.record(sim, phase)
+    assert rec["displacement"] == pytest.approx(0.05, rel=1e-12)
+    assert rec["shear_force"] == pytest.approx(1000.0, rel=1e-12)
+    assert rec["shear_stress"] == pytest.approx(56588.0, rel=1e-4)
+
+
 def test_shear_rings_split_at_mid_height_with_the_gap_centred_and_the_upper_ring_moving():
     """A sample whose grains reach 118 mm under a plate at 120 mm: H = 118 mm, the split plane
     at 59 mm, the 1 mm gap from 58.5 to 59.5 mm; the upper ring and the top plate move at

@@ -106,25 +106,6 @@ def test_shear_series_is_the_ring_force_over_the_sample_section(micro_run):
     assert np.mean(force[half:]) > 0          # the grains hold the ring back
 
 
-def test_shear_record_moves_at_50_mm_per_min_and_divides_by_pi_R2():
-    """The same measure on the paper's default stage, without a run: a stub simulation 60 s
-    into the shear whose grains push the ring (wall 2) by 1000 N along +x (the wall force
-    -1000 N): the ring has moved 50 mm, tau = 1000 / (pi 0.075^2) = 56.588 kPa."""
-    import types
-    from tcd.config import parse_scenario
-    from tcd.protocols import Shear
-    scn = parse_scenario('name = "t"\n\n[[stage]]\nkind = "prepare"\n\n[[stage]]\nkind = "shear"\n')
-    shear = Shear(scn.stages[1], scn, 1)
-    forces = {2: np.array([-1000.0, 0.0, 0.0]), 3: np.zeros(3)}
-    sim = types.SimpleNamespace(time=70.0, wall_force=lambda k: forces[k],
-                                bonds_state_counts=lambda: (5, 0, 0))
-    phase = types.SimpleNamespace(info={"radius": 0.075, "t0": 10.0})
-    rec = shear.record(sim, phase)
-    assert rec["displacement"] == pytest.approx(0.05, rel=1e-12)
-    assert rec["shear_force"] == pytest.approx(1000.0, rel=1e-12)
-    assert rec["shear_stress"] == pytest.approx(56588.0, rel=1e-4)
-
-
 def test_courses_as_built_are_their_tops_when_their_hold_ended(micro_run):
     """Each course's height as built is read when its own hold ends: its grains' top (never
     above the plate that holds them), from the top the course below had at its own end."""
