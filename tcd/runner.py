@@ -17,14 +17,17 @@ state and step counts, the resumed run ends with the same numbers as an uninterr
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import pathlib
 import signal
+import socket
 import sys
 import threading
 import time
+import warnings
 
 import numpy as np
 
@@ -150,41 +153,45 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     check_samples(scenario, [seed for seed in pending if not (
         resume and (out / f"sample_{seed}" / "checkpoint.h5").is_file())])
     backend.check_available(scenario.backend.arch)     # before anything is written
-    record_scenario(scenario, out, resume)
-    if jobs > 1 and len(pending) > 1:
-        import concurrent.futures
-        import multiprocessing
-        ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
-        workers = min(jobs, len(pending))
-        # each worker's share of the cores (its solver's threads for the partitioned schedule):
-        # one thread runs its kernels' loops inline (backend.serial_loops): with fast math
-        # off (the CPU's default) the numbers of a run in the pool too; with TCD_FAST_MATH=1
-        # they differ in the last bits (loop_mode)
-        if scenario.solver.schedule == "partitioned":
-            worker_threads = scenario.solver.threads
+    if resume:
+        record_scenario(scenario, out, resume)      # its checks: a refused resume writes nothing
+    with run_lock(out):        # one process writes into `out` at a time
+        if not resume:
+            record_scenario(scenario, out, resume)
+        if jobs > 1 and len(pending) > 1:
+            import concurrent.futures
+            import multiprocessing
+            ctx = multiprocessing.get_context("spawn")      # a fresh Taichi runtime per process
+            workers = min(jobs, len(pending))
+            # each worker's share of the cores (its solver's threads for the partitioned schedule):
+            # one thread runs its kernels' loops inline (backend.serial_loops): with fast math
+            # off (the CPU's default) the numbers of a run in the pool too; with TCD_FAST_MATH=1
+            # they differ in the last bits (loop_mode)
+            if scenario.solver.schedule == "partitioned":
+                worker_threads = scenario.solver.threads
+            else:
+                worker_threads = max(1, (os.cpu_count() or 1) // workers)
+            with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
+                                                        mp_context=ctx) as pool:
+                futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
+                                             scenario.backend.arch, scenario.backend.precision,
+                                             seed, str(out / f"sample_{seed}"), resume, progress,
+                                             worker_threads)
+                           for seed in pending}
+                with ForwardTerm(pool):
+                    for seed, future in futures.items():
+                        done[seed] = future.result()
         else:
-            worker_threads = max(1, (os.cpu_count() or 1) // workers)
-        with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
-                                                    mp_context=ctx) as pool:
-            futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
-                                         scenario.backend.arch, scenario.backend.precision,
-                                         seed, str(out / f"sample_{seed}"), resume, progress,
-                                         worker_threads)
-                       for seed in pending}
-            with ForwardTerm(pool):
-                for seed, future in futures.items():
-                    done[seed] = future.result()
-    else:
-        backend.init(scenario.backend.arch, scenario.backend.precision)
-        for seed in pending:
-            done[seed] = run_sample(scenario, seed, out / f"sample_{seed}", resume=resume,
-                                    progress=progress)
-    samples = [done[seed] for seed in scenario.seeds]
-    summary = summarize(scenario, samples)
-    summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
-    summary["jobs"] = jobs
-    io.write_json(out / "summary.json", summary)
-    return summary
+            backend.init(scenario.backend.arch, scenario.backend.precision)
+            for seed in pending:
+                done[seed] = run_sample(scenario, seed, out / f"sample_{seed}", resume=resume,
+                                        progress=progress)
+        samples = [done[seed] for seed in scenario.seeds]
+        summary = summarize(scenario, samples)
+        summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
+        summary["jobs"] = jobs
+        io.write_json(out / "summary.json", summary)
+        return summary
 
 
 def _scenario_record(scenario) -> dict:
@@ -208,6 +215,53 @@ def scenario_changes(text: str, scenario, where: str) -> list:
         raise ValueError(f"{where}: the scenario this run started with cannot be read back "
                          f"({reasons}); resume is refused") from None
     return io.differences(_scenario_record(first), _scenario_record(scenario))
+
+
+LOCK_FILE = ".tcd.lock"
+
+
+@contextlib.contextmanager
+def run_lock(out: pathlib.Path):
+    """Hold `out`/.tcd.lock (an exclusive `flock`, created with `out` if need be) while a run
+    writes into `out`: a second `tcd run` into the same directory, typically a `--resume` while
+    the first process still runs, would append to the same states.h5 and overwrite the same
+    checkpoint. It is refused, naming the process that holds the lock. The kernel drops the
+    lock when its process ends, however it ends (a SIGKILL too), so a stale lock file never
+    blocks a resume. Where `flock` is missing (not POSIX) or refused by the file system (some
+    network file systems), the run goes on unlocked, with a warning."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:
+        warnings.warn(f"{out}: no file locking on this platform; make sure that no other tcd "
+                      "process writes into this directory", RuntimeWarning, stacklevel=3)
+        yield
+        return
+    path = out / LOCK_FILE
+    with open(path, "a+", encoding="utf-8") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            locked = True
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "a process that did not say which"
+            raise ValueError(f"{out}: another tcd run is writing into this directory ({holder}); "
+                             "wait for it to end, or stop it (Ctrl-C or SIGTERM: it writes its "
+                             "checkpoint) before --resume, or choose another --out "
+                             "directory") from None
+        except OSError as exc:
+            warnings.warn(f"{path}: cannot lock ({exc}); make sure that no other tcd process "
+                          "writes into this directory", RuntimeWarning, stacklevel=3)
+            locked = False
+        if locked:
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()} on {socket.gethostname()}, since "
+                    f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            f.flush()
+        yield
 
 
 def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
@@ -262,8 +316,6 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
                              "with that scenario and backend, or start a new run in another "
                              "--out directory")
         return
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(stored) as tmp:
         pathlib.Path(tmp).write_text(scenario.text)
@@ -307,122 +359,126 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     if not resume:
         check_samples(scenario, seeds)
     backend.check_available(scenario.backend.arch)     # before anything is written
-    record_scenario(scenario, out, resume)
-    backend.init(scenario.backend.arch, scenario.backend.precision)
-    t_start = time.perf_counter()
-    dirs = {seed: out / f"sample_{seed}" for seed in seeds}
-    protos = {seed: PROTOCOLS["shear"](stage, scenario, seed) for seed in seeds}
-    h = scenario.solver.time_step
     if resume:
-        arrays, meta = io.load_checkpoint(ck_path)
-        check_run_checkpoint(scenario, ck_path, meta, BATCH_CHECKPOINT_KEYS, seeds=seeds)
-        batch = restore_checkpoint(scenario, ck_path, arrays, meta)
-        for seed in seeds:
-            restore_frames(dirs[seed] / "states.h5", (meta.get("frames") or {}).get(str(seed)),
-                           ck_path, seed)
-        phases = [Phase.from_json(ph) for ph in meta["phases"]]
-        step_in_phase, next_snapshot = meta["step_in_phase"], meta["next_snapshot"]
-        results = meta["results"]
-        series = [{k.split("/", 2)[2]: list(v) for k, v in arrays.items()
-                   if k.startswith(f"series/{seed}/")} for seed in seeds]
-        wall_before = meta["wall_time_s"]
-    else:
-        for d in dirs.values():
-            d.mkdir(parents=True, exist_ok=True)
-            for stale in ("states.h5", "checkpoint.h5", "summary.json"):
-                (d / stale).unlink(missing_ok=True)
-        sims, phases = plan_shears(scenario, stage, seeds,
-                                   [stage.sample.format(seed=seed) for seed in seeds])
-        batch = Simulation.batch(sims)
-        for o in sims:
-            o.close()
-        step_in_phase, next_snapshot, wall_before = 0, 0.0, 0.0
-        series = [{} for _ in seeds]
-        results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
-                   for seed in seeds]
-    for res in results:
-        _record_loop_mode(res)
-    views = SystemView.all(batch)
-    if not resume:
-        for seed, view, res in zip(seeds, views, results):
-            k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
-                                step=batch.step_index, stage="shear", scenario_text=scenario.text,
-                                tcd_version=__version__)
-            res["stage_first_frame"] = {"0": k}
-    t_loop = time.perf_counter() - wall_before
-    last_ck = time.perf_counter()
+        record_scenario(scenario, out, resume)      # its checks: a refused resume writes nothing
+    with run_lock(out):        # one process writes into `out` at a time
+        if not resume:
+            record_scenario(scenario, out, resume)
+        backend.init(scenario.backend.arch, scenario.backend.precision)
+        t_start = time.perf_counter()
+        dirs = {seed: out / f"sample_{seed}" for seed in seeds}
+        protos = {seed: PROTOCOLS["shear"](stage, scenario, seed) for seed in seeds}
+        h = scenario.solver.time_step
+        if resume:
+            arrays, meta = io.load_checkpoint(ck_path)
+            check_run_checkpoint(scenario, ck_path, meta, BATCH_CHECKPOINT_KEYS, seeds=seeds)
+            batch = restore_checkpoint(scenario, ck_path, arrays, meta)
+            for seed in seeds:
+                restore_frames(dirs[seed] / "states.h5", (meta.get("frames") or {}).get(str(seed)),
+                               ck_path, seed)
+            phases = [Phase.from_json(ph) for ph in meta["phases"]]
+            step_in_phase, next_snapshot = meta["step_in_phase"], meta["next_snapshot"]
+            results = meta["results"]
+            series = [{k.split("/", 2)[2]: list(v) for k, v in arrays.items()
+                       if k.startswith(f"series/{seed}/")} for seed in seeds]
+            wall_before = meta["wall_time_s"]
+        else:
+            for d in dirs.values():
+                d.mkdir(parents=True, exist_ok=True)
+                for stale in ("states.h5", "checkpoint.h5", "summary.json"):
+                    (d / stale).unlink(missing_ok=True)
+            sims, phases = plan_shears(scenario, stage, seeds,
+                                       [stage.sample.format(seed=seed) for seed in seeds])
+            batch = Simulation.batch(sims)
+            for o in sims:
+                o.close()
+            step_in_phase, next_snapshot, wall_before = 0, 0.0, 0.0
+            series = [{} for _ in seeds]
+            results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
+                       for seed in seeds]
+        for res in results:
+            _record_loop_mode(res)
+        views = SystemView.all(batch)
+        if not resume:
+            for seed, view, res in zip(seeds, views, results):
+                k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
+                                    step=batch.step_index, stage="shear", scenario_text=scenario.text,
+                                    tcd_version=__version__)
+                res["stage_first_frame"] = {"0": k}
+        t_loop = time.perf_counter() - wall_before
+        last_ck = time.perf_counter()
 
-    def checkpoint():
-        arrays = dict(batch.state_dict())
-        for seed, ser in zip(seeds, series):
-            arrays.update({f"series/{seed}/{k}": np.asarray(v) for k, v in ser.items()})
-        meta = {"seeds": seeds, "phases": [ph.to_json() for ph in phases],
-                "step_in_phase": step_in_phase, "next_snapshot": next_snapshot,
-                "results": results, "time": batch.time, "step": batch.step_index,
-                "walls": [w.to_dict() for w in batch.walls], "bond_law": batch.bond_law.__dict__,
-                "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
-                "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__,
-                "scenario_text": scenario.text,
-                "frames": {str(seed): io.frame_count(dirs[seed] / "states.h5") for seed in seeds}}
-        io.save_checkpoint(ck_path, arrays, meta)
+        def checkpoint():
+            arrays = dict(batch.state_dict())
+            for seed, ser in zip(seeds, series):
+                arrays.update({f"series/{seed}/{k}": np.asarray(v) for k, v in ser.items()})
+            meta = {"seeds": seeds, "phases": [ph.to_json() for ph in phases],
+                    "step_in_phase": step_in_phase, "next_snapshot": next_snapshot,
+                    "results": results, "time": batch.time, "step": batch.step_index,
+                    "walls": [w.to_dict() for w in batch.walls], "bond_law": batch.bond_law.__dict__,
+                    "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
+                    "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__,
+                    "scenario_text": scenario.text,
+                    "frames": {str(seed): io.frame_count(dirs[seed] / "states.h5") for seed in seeds}}
+            io.save_checkpoint(ck_path, arrays, meta)
 
-    steps = phases[0].steps
-    with DeferredInterrupt() as interrupt:
-        bar = Progress(progress, f"batch of {len(seeds)} shear", steps, h)
-        bar.update(step_in_phase, batch.time)
-        while step_in_phase < steps:
-            protos[seeds[0]].before_step(batch, phases[0])
-            rec = batch.step()
-            step_in_phase += 1
-            if step_in_phase % scenario.output.series_every == 0 or step_in_phase == steps:
-                # each view's numbers as a run of its system alone records them; the views
-                # share one read of each field per step (SystemView.all: a read waits for a GPU)
-                for k, (seed, view) in enumerate(zip(seeds, views)):
-                    sweeps, residual = view.solver_stats()
-                    row = {"time": batch.time, "step": batch.step_index, "sweeps": sweeps,
-                           "residual": residual, "contacts": view.contact_count(),
-                           "kinetic_energy": view.kinetic_energy()}
-                    row.update(protos[seed].record(view, phases[k]))
-                    for key, v in row.items():
-                        series[k].setdefault(key, []).append(v)
-            if batch.time >= next_snapshot - 1e-12:
-                for seed, view in zip(seeds, views):
-                    io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
-                                    step=batch.step_index, stage="shear",
-                                    scenario_text=scenario.text, tcd_version=__version__)
-                every = scenario.output.snapshot_every
-                next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
-            bar.count_sweeps(rec.sweeps)
-            if step_in_phase % 100 == 0:
-                bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
-            last_ck = _checkpoint_if_due(interrupt, last_ck, scenario.output.checkpoint_every_s,
-                                         checkpoint, bar)
-        bar.close()
-        checkpoint()
-    wall = time.perf_counter() - t_loop
-    samples = []
-    for k, (seed, view) in enumerate(zip(seeds, views)):
-        res, arrays = results[k], {key: np.asarray(v) for key, v in series[k].items()}
-        states = dirs[seed] / "states.h5"
-        numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
-                                        res.get("stage_first_frame", {}).get("0"))
-        numbers["wall_time_s"] = wall
-        numbers["steps"] = int(step_in_phase)
-        res["stages"]["0:shear"] = numbers
-        res["wall_time_s"]["0:shear"] = wall
-        res["phases"] = [{"stage": "shear", "phase": phases[k].name, "steps": step_in_phase,
-                          "end_time": batch.time, **phases[k].info}]
-        res["last_phase"] = phases[k].to_json()
-        _write_series(dirs[seed], "shear", arrays, attrs)
-        io.append_frame(states, frame_of(view), time=batch.time, step=batch.step_index,
-                        stage="shear", scenario_text=scenario.text, tcd_version=__version__)
-        samples.append(_write_sample_summary(dirs[seed], seed, res))
-    summary = summarize(scenario, samples)
-    summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
-    summary["batched"] = True
-    io.write_json(out / "summary.json", summary)
-    batch.close()
-    return summary
+        steps = phases[0].steps
+        with DeferredInterrupt() as interrupt:
+            bar = Progress(progress, f"batch of {len(seeds)} shear", steps, h)
+            bar.update(step_in_phase, batch.time)
+            while step_in_phase < steps:
+                protos[seeds[0]].before_step(batch, phases[0])
+                rec = batch.step()
+                step_in_phase += 1
+                if step_in_phase % scenario.output.series_every == 0 or step_in_phase == steps:
+                    # each view's numbers as a run of its system alone records them; the views
+                    # share one read of each field per step (SystemView.all: a read waits for a GPU)
+                    for k, (seed, view) in enumerate(zip(seeds, views)):
+                        sweeps, residual = view.solver_stats()
+                        row = {"time": batch.time, "step": batch.step_index, "sweeps": sweeps,
+                               "residual": residual, "contacts": view.contact_count(),
+                               "kinetic_energy": view.kinetic_energy()}
+                        row.update(protos[seed].record(view, phases[k]))
+                        for key, v in row.items():
+                            series[k].setdefault(key, []).append(v)
+                if batch.time >= next_snapshot - 1e-12:
+                    for seed, view in zip(seeds, views):
+                        io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
+                                        step=batch.step_index, stage="shear",
+                                        scenario_text=scenario.text, tcd_version=__version__)
+                    every = scenario.output.snapshot_every
+                    next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
+                bar.count_sweeps(rec.sweeps)
+                if step_in_phase % 100 == 0:
+                    bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
+                last_ck = _checkpoint_if_due(interrupt, last_ck, scenario.output.checkpoint_every_s,
+                                             checkpoint, bar)
+            bar.close()
+            checkpoint()
+        wall = time.perf_counter() - t_loop
+        samples = []
+        for k, (seed, view) in enumerate(zip(seeds, views)):
+            res, arrays = results[k], {key: np.asarray(v) for key, v in series[k].items()}
+            states = dirs[seed] / "states.h5"
+            numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
+                                            res.get("stage_first_frame", {}).get("0"))
+            numbers["wall_time_s"] = wall
+            numbers["steps"] = int(step_in_phase)
+            res["stages"]["0:shear"] = numbers
+            res["wall_time_s"]["0:shear"] = wall
+            res["phases"] = [{"stage": "shear", "phase": phases[k].name, "steps": step_in_phase,
+                              "end_time": batch.time, **phases[k].info}]
+            res["last_phase"] = phases[k].to_json()
+            _write_series(dirs[seed], "shear", arrays, attrs)
+            io.append_frame(states, frame_of(view), time=batch.time, step=batch.step_index,
+                            stage="shear", scenario_text=scenario.text, tcd_version=__version__)
+            samples.append(_write_sample_summary(dirs[seed], seed, res))
+        summary = summarize(scenario, samples)
+        summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
+        summary["batched"] = True
+        io.write_json(out / "summary.json", summary)
+        batch.close()
+        return summary
 
 
 def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress,
@@ -803,7 +859,7 @@ def read_prepared(path) -> tuple[dict, dict]:
     """The arrays and meta of the prepared sample at `path`, checked for everything a shear
     needs from it, without building a simulation (so that `tcd run` can check every seed's
     sample before the first one starts). Each problem is a ValueError naming the file."""
-    from .simulation import MAX_WALLS, STATE_KEYS
+    from .simulation import MAX_WALLS, STATE_KEYS, check_state_arrays
     from .walls import Wall
     p = pathlib.Path(path)
     arrays, meta = io.load_checkpoint(p)
@@ -822,19 +878,12 @@ def read_prepared(path) -> tuple[dict, dict]:
     # the schema's checks (shapes, dtypes, indices, radii, positions), as for every state read;
     # contacts may touch any wall slot: the shear replaces the sample's walls with its own
     io.check_state(arrays, str(p), wall_slots=MAX_WALLS)
-    n = len(arrays["particles/x"])
-    if n == 0:
+    if len(arrays["particles/x"]) == 0:
         raise ValueError(f"{p}: particles/x holds no particles")
-    for key, shape in (("particles/inv_mass", (n,)), ("particles/inv_inertia", (n,)),
-                       ("particles/f_ext", (n, 3))):          # a simulation's, not the schema's
-        a = np.asarray(arrays[key])
-        if a.shape != shape or a.dtype.kind != "f":
-            raise ValueError(f"{p}: key {key!r} has shape {a.shape} and dtype {a.dtype}, "
-                             f"expected {shape} floating-point numbers ({n} particles)")
-    for key in STATE_KEYS:
-        a = np.asarray(arrays[key])
-        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-            raise ValueError(f"{p}: key {key!r} holds non-finite values")
+    try:        # a simulation's checks (inverse masses, loads, velocities, contacts, bonds)
+        check_state_arrays(arrays)
+    except ValueError as exc:
+        raise ValueError(f"{p}: {exc}") from None
     try:
         walls = meta["walls"]
         if not isinstance(walls, list):

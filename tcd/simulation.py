@@ -1082,17 +1082,11 @@ class Simulation:
         n = len(d["particles/radius"])
         if n != self.n:
             raise ValueError(f"state has {n} particles, simulation has {self.n}")
-        for key in ("x", "v", "w"):
-            per_particle(f"state's particles/{key}", d["particles/" + key], n, broadcast=False)
-        j = np.asarray(d["contacts/j"])
-        if j.size and (j.min() < 0 or j.max() >= n + MAX_WALLS):
-            raise ValueError(f"state's contacts/j has indices outside the {n} particles and "
-                             f"{MAX_WALLS} wall slots")
         system = np.asarray(d.get("particles/system", np.zeros(n, np.int32)))
         if not np.array_equal(system, get(p.system, n)):
             raise ValueError("state's particle systems differ from the simulation's "
                              "(build the simulation with system=...)")
-        self._check_state_arrays(d, n)
+        check_state_arrays(d)
         radius = np.asarray(d["particles/radius"]).astype(backend.numpy_real())
         if not np.array_equal(radius, get(p.radius, n)):
             # the grid cell, alert distance and projection slop follow the radii
@@ -1130,57 +1124,6 @@ class Simulation:
         force = np.asarray(d.get("walls/force", np.zeros((0, 3))), float).reshape(-1, 3)
         if len(force) == len(self.walls):
             put(self.wall_fields.force, force)
-
-    def _check_state_arrays(self, d: dict, n: int) -> None:
-        """Refuse, naming the key, a state whose arrays would corrupt the run once installed:
-        wrong lengths (they were zero-padded or cut), indices out of range, NaN or infinite
-        numbers, negative inverse masses, bond states other than intact or broken."""
-        def arr(key):
-            return np.asarray(d[key])
-
-        def need(key, shape, *, kind="f", finite=True, low=None):
-            a = arr(key)
-            if a.shape != shape or a.dtype.kind not in (("i", "u") if kind == "i" else ("f", "i", "u")):
-                raise ValueError(f"state's {key} has shape {a.shape} and dtype {a.dtype}, expected "
-                                 f"{shape} {'integers' if kind == 'i' else 'numbers'}")
-            if kind == "f" and finite and not np.all(np.isfinite(a)):
-                raise ValueError(f"state's {key} holds NaN or infinite values")
-            if low is not None and a.size and a.min() < low:
-                raise ValueError(f"state's {key} holds values below {low}")
-            return a
-
-        for key in ("inv_mass", "inv_inertia"):
-            need("particles/" + key, (n,), low=0.0)
-        need("particles/f_ext", (n, 3))
-        need("particles/layer", (n,), kind="i", low=0)
-        m = len(arr("contacts/i"))
-        ci = need("contacts/i", (m,), kind="i", low=0)
-        if m and ci.max() >= n:
-            raise ValueError(f"state's contacts/i has indices outside the {n} particles")
-        need("contacts/j", (m,), kind="i")
-        need("contacts/impulse", (m, 3))
-        if "contacts/impulse_old" in d:
-            need("contacts/impulse_old", (m, 3))
-        need("contacts/gap", (m,))
-        # (its values are not checked: a simulation that never stepped holds its pooled
-        # buffer's old ones, which nothing reads while its contact count is 0)
-        need("contacts/start", (n + 1,), kind="i")
-        b = len(arr("bonds/state"))
-        state = need("bonds/state", (b,), kind="i")
-        if b and not np.all(np.isin(state, (sk.INTACT, sk.BROKEN_TENSION, sk.BROKEN_SHEAR))):
-            raise ValueError(f"state's bonds/state holds values other than {sk.INTACT} (intact), "
-                             f"{sk.BROKEN_TENSION} and {sk.BROKEN_SHEAR} (broken)")
-        if b:
-            for key in ("bonds/i", "bonds/j"):
-                if key not in d:
-                    raise ValueError(f"state has {b} bonds but no {key}")
-                a = need(key, (b,), kind="i", low=0)
-                if a.max() >= n:
-                    raise ValueError(f"state's {key} has indices outside the {n} particles")
-        for key in self._BOND_DEFAULTS:
-            if "bonds/" + key in d and key not in ("i", "j", "state"):
-                shape = (b, 3) if key in self._BOND_VECTORS else (b,)
-                need("bonds/" + key, shape, finite=key != "broken_time")
 
     # ---------------------------------------------------------------- batched systems
     @classmethod
@@ -1505,3 +1448,67 @@ class SystemView:
             d.pop("walls")
             self._split, self._split_step = d, self.batch.step_index
         return self._split
+
+
+def check_state_arrays(d: dict) -> int:
+    """Refuse, naming the key, a state (the keys of `Simulation.state_dict`, at least
+    STATE_KEYS) whose arrays would corrupt the run once installed: wrong lengths (they were
+    zero-padded or cut), indices out of range, NaN or infinite numbers, negative inverse
+    masses, bond states other than intact or broken. Returns its particle count.
+    `Simulation.load_state_dict` asks it, and `runner.read_prepared` of a sample before any
+    simulation is built."""
+    n = len(d["particles/radius"])
+    for key in ("x", "v", "w"):
+        per_particle(f"state's particles/{key}", d["particles/" + key], n, broadcast=False)
+    j = np.asarray(d["contacts/j"])
+    if j.size and (j.min() < 0 or j.max() >= n + MAX_WALLS):
+        raise ValueError(f"state's contacts/j has indices outside the {n} particles and "
+                         f"{MAX_WALLS} wall slots")
+
+    def arr(key):
+        return np.asarray(d[key])
+
+    def need(key, shape, *, kind="f", finite=True, low=None):
+        a = arr(key)
+        if a.shape != shape or a.dtype.kind not in (("i", "u") if kind == "i" else ("f", "i", "u")):
+            raise ValueError(f"state's {key} has shape {a.shape} and dtype {a.dtype}, expected "
+                             f"{shape} {'integers' if kind == 'i' else 'numbers'}")
+        if kind == "f" and finite and not np.all(np.isfinite(a)):
+            raise ValueError(f"state's {key} holds NaN or infinite values")
+        if low is not None and a.size and a.min() < low:
+            raise ValueError(f"state's {key} holds values below {low}")
+        return a
+
+    for key in ("inv_mass", "inv_inertia"):
+        need("particles/" + key, (n,), low=0.0)
+    need("particles/f_ext", (n, 3))
+    need("particles/layer", (n,), kind="i", low=0)
+    m = len(arr("contacts/i"))
+    ci = need("contacts/i", (m,), kind="i", low=0)
+    if m and ci.max() >= n:
+        raise ValueError(f"state's contacts/i has indices outside the {n} particles")
+    need("contacts/j", (m,), kind="i")
+    need("contacts/impulse", (m, 3))
+    if "contacts/impulse_old" in d:
+        need("contacts/impulse_old", (m, 3))
+    need("contacts/gap", (m,))
+    # (its values are not checked: a simulation that never stepped holds its pooled
+    # buffer's old ones, which nothing reads while its contact count is 0)
+    need("contacts/start", (n + 1,), kind="i")
+    b = len(arr("bonds/state"))
+    state = need("bonds/state", (b,), kind="i")
+    if b and not np.all(np.isin(state, (sk.INTACT, sk.BROKEN_TENSION, sk.BROKEN_SHEAR))):
+        raise ValueError(f"state's bonds/state holds values other than {sk.INTACT} (intact), "
+                         f"{sk.BROKEN_TENSION} and {sk.BROKEN_SHEAR} (broken)")
+    if b:
+        for key in ("bonds/i", "bonds/j"):
+            if key not in d:
+                raise ValueError(f"state has {b} bonds but no {key}")
+            a = need(key, (b,), kind="i", low=0)
+            if a.max() >= n:
+                raise ValueError(f"state's {key} has indices outside the {n} particles")
+    for key in Simulation._BOND_DEFAULTS:
+        if "bonds/" + key in d and key not in ("i", "j", "state"):
+            shape = (b, 3) if key in Simulation._BOND_VECTORS else (b,)
+            need("bonds/" + key, shape, finite=key != "broken_time")
+    return n

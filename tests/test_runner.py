@@ -749,9 +749,16 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         "negative_radius": ({**arrays, "particles/radius": -arrays["particles/radius"]},
                             r"'particles/radius' holds \d+ radii that are not positive and finite"),
         "nan_velocity": ({**arrays, "particles/v": arrays["particles/v"] * np.nan},
-                         "key 'particles/v' holds non-finite values"),
+                         r"particles/v must be finite \(got NaN or infinity at particle 0\)"),
         "short_f_ext": ({**arrays, "particles/f_ext": arrays["particles/f_ext"][:-1]},
-                        r"key 'particles/f_ext' has shape \(\d+, 3\)"),
+                        r"particles/f_ext has shape \(\d+, 3\) and dtype float64, expected "
+                        r"\(\d+, 3\) numbers"),
+        # what only a simulation's load checked (session 44: seed 3 ran before seed 4's
+        # negative inverse masses were found)
+        "negative_inv_mass": ({**arrays, "particles/inv_mass": -arrays["particles/inv_mass"]},
+                              r"particles/inv_mass holds values below 0.0"),
+        "negative_layer": ({**arrays, "particles/layer": arrays["particles/layer"] - 5},
+                           r"particles/layer holds values below 0"),
         "bad_contact": ({**arrays, "contacts/i": arrays["contacts/i"] + len(arrays["particles/x"])},
                         r"key 'contacts/i' has indices in \[\d+, \d+\], expected \[0, \d+\)"),
         # what the shear's plan needs of the walls (session 42 audit: these stopped the study
@@ -943,3 +950,53 @@ def test_sample_summary_lifts_each_stage_s_headline_numbers(tmp_path):
                                                                 if k != "peak_index"}
     assert "peak_index" not in flat
 
+
+
+def test_a_second_process_cannot_write_into_a_running_runs_directory(micro_run, tmp_path, capsys):
+    """`tcd run --resume` (or a new run) into a directory another process still writes into
+    would append to the same states.h5 and overwrite its checkpoint (session 44): it is now
+    refused while that process holds the run's lock, and runs once that process is gone, even
+    after a SIGKILL left the lock file behind."""
+    import fcntl
+    import shutil
+    from tcd.runner import LOCK_FILE
+    scenario, out = micro_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    (run / LOCK_FILE).unlink(missing_ok=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import fcntl, sys, time\n"
+         f"f = open({str(run / LOCK_FILE)!r}, 'a+')\n"
+         "fcntl.flock(f, fcntl.LOCK_EX)\n"
+         "f.write('pid 4242 on the other terminal'); f.flush()\n"
+         "print('locked', flush=True)\n"
+         "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+        capsys.readouterr()
+        assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 2
+        err = capsys.readouterr().err
+        assert (f"{run}: another tcd run is writing into this directory (pid 4242 on the other "
+                "terminal)") in err, err
+        after = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+        assert after == before              # nothing written, the lock file left as it was
+        fresh = tmp_path / "fresh"          # an empty directory another run has just locked
+        fresh.mkdir()
+        shutil.copy(run / LOCK_FILE, fresh / LOCK_FILE)
+        with open(fresh / LOCK_FILE) as f:
+            fcntl.flock(f, fcntl.LOCK_EX)
+            assert run_tcd(["run", str(scenario), "--out", str(fresh)]) == 2
+            assert "another tcd run is writing into this directory" in capsys.readouterr().err
+        assert sorted(p.name for p in fresh.iterdir()) == [LOCK_FILE]
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+        holder.stdout.close()
+    # the holder was killed: its lock went with it, and the resume runs (every sample is done,
+    # so it writes the summary again) and leaves its own pid in the lock file
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
+    assert (run / LOCK_FILE).read_text().startswith(f"pid {os.getpid()} on ")
+    assert json.loads((run / "summary.json").read_text())["samples"] == \
+        json.loads((out / "summary.json").read_text())["samples"]
