@@ -171,6 +171,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 worker_threads = scenario.solver.threads
             else:
                 worker_threads = max(1, (os.cpu_count() or 1) // workers)
+            for seed in pending:        # a worker orphaned by a killed run may still write
+                with run_lock(out / f"sample_{seed}"):      # there: refuse before any starts
+                    pass
             with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
                                                         mp_context=ctx) as pool:
                 futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
@@ -578,7 +581,9 @@ def _record_loop_mode(result: dict) -> None:
 
 
 def run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progress: bool) -> dict:
-    with DeferredInterrupt() as interrupt:
+    # the sample's own lock: a worker of `--jobs` outlives its parent when only the parent is
+    # killed, and would go on writing here while a resumed run wrote the same files
+    with run_lock(sample_dir), DeferredInterrupt() as interrupt:
         return _run_sample(scn, seed, sample_dir, resume=resume, progress=progress,
                            interrupt=interrupt)
 

@@ -1000,3 +1000,48 @@ def test_a_second_process_cannot_write_into_a_running_runs_directory(micro_run, 
     assert (run / LOCK_FILE).read_text().startswith(f"pid {os.getpid()} on ")
     assert json.loads((run / "summary.json").read_text())["samples"] == \
         json.loads((out / "summary.json").read_text())["samples"]
+
+
+def test_a_sample_still_written_by_an_orphaned_worker_is_not_resumed(micro_run, tmp_path, capsys):
+    """A `--jobs` worker outlives its parent when only the parent is killed, and goes on
+    writing its sample: a resume (serial or with --jobs) refuses that sample while the worker
+    holds its lock, before anything is written (session 44)."""
+    import shutil
+    from tcd.runner import LOCK_FILE
+    scenario, out = micro_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    for lock in run.rglob(LOCK_FILE):
+        lock.unlink()
+    (run / "sample_3" / "summary.json").unlink()      # the sample is to be resumed
+    lock = run / "sample_3" / LOCK_FILE
+    orphan = subprocess.Popen(
+        [sys.executable, "-c",
+         "import fcntl, time\n"
+         f"f = open({str(lock)!r}, 'a+')\n"
+         "fcntl.flock(f, fcntl.LOCK_EX)\n"
+         "f.write('pid 777 on a worker'); f.flush()\n"
+         "print('locked', flush=True)\n"
+         "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert orphan.stdout.readline().strip() == "locked"
+        before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+        two = tmp_path / "two_seeds.toml"        # the same scenario, with a seed to start
+        two.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4]", 1))
+        for scn, extra in ((scenario, []), (two, ["--jobs", "2"])):
+            capsys.readouterr()
+            assert run_tcd(["run", str(scn), "--out", str(run), "--resume", *extra]) == 2
+            err = capsys.readouterr().err
+            assert (f"{run / 'sample_3'}: another tcd run is writing into this directory "
+                    "(pid 777 on a worker)") in err, (extra, err)
+            after = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()
+                     and p.name != LOCK_FILE}
+            assert after == {p: b for p, b in before.items() if p.name != LOCK_FILE}, extra
+            assert not (run / "sample_4").exists(), extra
+    finally:
+        orphan.send_signal(signal.SIGKILL)
+        orphan.wait()
+        orphan.stdout.close()
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
+    resumed, first = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (run, out))
+    assert resumed["tau_peak_MPa"] == first["tau_peak_MPa"] and resumed["particles"] == first["particles"]
