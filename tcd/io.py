@@ -135,20 +135,21 @@ os.umask(_umask)
 
 # --- atomic writes ---------------------------------------------------------------------------
 @contextlib.contextmanager
-def atomic_path(path):
+def atomic_path(path, suffix: str = ".tmp"):
     """Yield a temporary path beside `path`; on success fsync it and ``os.replace`` it onto `path`.
 
     The temporary file exists (empty) when the body starts; the body writes it and closes it. On
     any exception, KeyboardInterrupt included, the temporary file is removed, `path` is untouched
     and the exception propagates. The result gets the mode of the file it replaces (or the default
-    mode from the umask).
+    mode from the umask). `suffix` ends the temporary's name (a writer that picks its format
+    from the extension, such as imageio, needs the target's).
     """
     target = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(target))
     if os.path.isdir(target):               # os.replace would fail only after all the work
         raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", target)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp",
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=suffix,
                                    dir=directory)
     except OSError as exc:                  # named by the path asked for, not the temporary
         raise type(exc)(exc.errno, exc.strerror, target) from None

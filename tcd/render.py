@@ -38,7 +38,6 @@ import dataclasses
 import importlib.util
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -1110,28 +1109,15 @@ def annotate(image: np.ndarray, *, scale: Optional[ColorScale] = None, legend=No
     return np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
 
 
-def _new_file_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
 @contextlib.contextmanager
 def atomic_output(out):
-    """Yield a temporary path in out's directory (same extension); on success it replaces
-    `out` (os.replace), on failure it is removed: a killed render never leaves half a file."""
+    """Yield a temporary path in out's directory (created if need be), with out's extension;
+    on success it replaces `out` (io.atomic_path: fsync, then os.replace), on failure it is
+    removed: a killed render never leaves half a file."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    try:
+    with io.atomic_path(out, suffix=out.suffix) as tmp:
         yield tmp
-        os.chmod(tmp, _new_file_mode())       # mkstemp makes 0600; give the usual 0666 & ~umask
-        os.replace(tmp, out)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def write_image(image: np.ndarray, out) -> None:

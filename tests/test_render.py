@@ -280,6 +280,20 @@ def test_failed_write_leaves_previous_file_intact(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["image.png"]
 
 
+def test_a_render_onto_a_file_keeps_its_mode_and_makes_its_folder(tmp_path):
+    """Renders go through io.atomic_path as every other output (session 44: render had its
+    own copy, which gave a replaced file the umask's mode and did not fsync)."""
+    out = tmp_path / "image.png"
+    out.write_bytes(b"old")
+    out.chmod(0o640)
+    render.write_image(np.full((4, 4, 3), 7, np.uint8), out)
+    assert (out.stat().st_mode & 0o777) == 0o640
+    assert iio.imread(out)[0, 0, 0] == 7
+    deep = tmp_path / "a" / "b" / "image.png"
+    render.write_image(np.zeros((4, 4, 3), np.uint8), deep)
+    assert [p.name for p in deep.parent.iterdir()] == ["image.png"]
+
+
 def test_figures_are_written(states, tmp_path):
     render.figure_sample(states, tmp_path / "fig2.png", width=120, height=90)
     assert iio.imread(tmp_path / "fig2.png").shape[:2] == (90, 120)
