@@ -1,4 +1,5 @@
 """End to end through `tcd run`: outputs, resume after a kill, crash-safe files (issue 4)."""
+import contextlib
 import csv
 import json
 import math
@@ -952,6 +953,27 @@ def test_sample_summary_lifts_each_stage_s_headline_numbers(tmp_path):
 
 
 
+@contextlib.contextmanager
+def lock_held_elsewhere(lock, holder: str):
+    """Another process holding the run lock file `lock` (as a running tcd run does), saying
+    `holder`; SIGKILLed at the end (its lock goes with it, the file stays)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c",
+         "import fcntl, time\n"
+         f"f = open({str(lock)!r}, 'a+')\n"
+         "fcntl.flock(f, fcntl.LOCK_EX)\n"
+         f"f.write({holder!r}); f.flush()\n"
+         "print('locked', flush=True)\n"
+         "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "locked"
+        yield
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+
+
 def test_a_second_process_cannot_write_into_a_running_runs_directory(micro_run, tmp_path, capsys):
     """`tcd run --resume` (or a new run) into a directory another process still writes into
     would append to the same states.h5 and overwrite its checkpoint (session 44): it is now
@@ -964,16 +986,7 @@ def test_a_second_process_cannot_write_into_a_running_runs_directory(micro_run, 
     run = tmp_path / "run"
     shutil.copytree(out, run)
     (run / LOCK_FILE).unlink(missing_ok=True)
-    holder = subprocess.Popen(
-        [sys.executable, "-c",
-         "import fcntl, sys, time\n"
-         f"f = open({str(run / LOCK_FILE)!r}, 'a+')\n"
-         "fcntl.flock(f, fcntl.LOCK_EX)\n"
-         "f.write('pid 4242 on the other terminal'); f.flush()\n"
-         "print('locked', flush=True)\n"
-         "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "locked"
+    with lock_held_elsewhere(run / LOCK_FILE, "pid 4242 on the other terminal"):
         before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
         capsys.readouterr()
         assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 2
@@ -990,10 +1003,6 @@ def test_a_second_process_cannot_write_into_a_running_runs_directory(micro_run, 
             assert run_tcd(["run", str(scenario), "--out", str(fresh)]) == 2
             assert "another tcd run is writing into this directory" in capsys.readouterr().err
         assert sorted(p.name for p in fresh.iterdir()) == [LOCK_FILE]
-    finally:
-        holder.send_signal(signal.SIGKILL)
-        holder.wait()
-        holder.stdout.close()
     # the holder was killed: its lock went with it, and the resume runs (every sample is done,
     # so it writes the summary again) and leaves its own pid in the lock file
     assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
@@ -1014,17 +1023,7 @@ def test_a_sample_still_written_by_an_orphaned_worker_is_not_resumed(micro_run, 
     for lock in run.rglob(LOCK_FILE):
         lock.unlink()
     (run / "sample_3" / "summary.json").unlink()      # the sample is to be resumed
-    lock = run / "sample_3" / LOCK_FILE
-    orphan = subprocess.Popen(
-        [sys.executable, "-c",
-         "import fcntl, time\n"
-         f"f = open({str(lock)!r}, 'a+')\n"
-         "fcntl.flock(f, fcntl.LOCK_EX)\n"
-         "f.write('pid 777 on a worker'); f.flush()\n"
-         "print('locked', flush=True)\n"
-         "time.sleep(120)\n"], stdout=subprocess.PIPE, text=True)
-    try:
-        assert orphan.stdout.readline().strip() == "locked"
+    with lock_held_elsewhere(run / "sample_3" / LOCK_FILE, "pid 777 on a worker"):
         before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
         two = tmp_path / "two_seeds.toml"        # the same scenario, with a seed to start
         two.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4]", 1))
@@ -1038,10 +1037,6 @@ def test_a_sample_still_written_by_an_orphaned_worker_is_not_resumed(micro_run, 
                      and p.name != LOCK_FILE}
             assert after == {p: b for p, b in before.items() if p.name != LOCK_FILE}, extra
             assert not (run / "sample_4").exists(), extra
-    finally:
-        orphan.send_signal(signal.SIGKILL)
-        orphan.wait()
-        orphan.stdout.close()
     assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
     resumed, first = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (run, out))
     assert resumed["tau_peak_MPa"] == first["tau_peak_MPa"] and resumed["particles"] == first["particles"]
