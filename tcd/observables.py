@@ -18,11 +18,14 @@ PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
 STUDY_KEYS = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
 
 
-def kinetic_energy(x_v, w, radius, density: float) -> float:
-    """Translational + rotational kinetic energy (J) of spheres of `density`."""
-    m = density * 4.0 / 3.0 * math.pi * radius**3
-    inertia = 0.4 * m * radius**2
-    return float(0.5 * np.sum(m * np.sum(x_v**2, axis=1)) + 0.5 * np.sum(inertia * np.sum(w**2, axis=1)))
+def kinetic_energy_of(v, w, inv_mass, inv_inertia) -> float:
+    """Translational + rotational kinetic energy (J) of bodies of inverse masses `inv_mass`
+    and inverse moments of inertia `inv_inertia` (a simulation's own, loaded states included);
+    a kinematic body (inverse mass 0: infinite mass, driven) carries none."""
+    inv_mass, inv_inertia = np.asarray(inv_mass, float), np.asarray(inv_inertia, float)
+    m = np.divide(1.0, inv_mass, out=np.zeros_like(inv_mass), where=inv_mass > 0)
+    inertia = np.divide(1.0, inv_inertia, out=np.zeros_like(inv_inertia), where=inv_inertia > 0)
+    return float(0.5 * np.sum(m * np.sum(v**2, axis=1)) + 0.5 * np.sum(inertia * np.sum(w**2, axis=1)))
 
 
 def slab_volume(z, r, z0: float, z1: float) -> np.ndarray:

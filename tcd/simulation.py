@@ -420,6 +420,7 @@ class Simulation:
         put(p.radius, radius)
         put(p.inv_mass, inv_mass)
         put(p.inv_inertia, inv_inertia)
+        self._inverse_masses = None         # inverse_masses(): read when first asked
         put(p.x, position)
         put(p.v, velocity)
         put(p.w, np.zeros((n, 3)))
@@ -1094,6 +1095,7 @@ class Simulation:
                              "another sample): build the Simulation with the state's radii")
         for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
             put(getattr(p, key), d["particles/" + key])
+        self._inverse_masses = None
         self._set_sample_index(d.get("particles/sample_index", self._identity_index()))
         self._neighbours_valid = False
         m = len(d["contacts/i"])
@@ -1310,9 +1312,21 @@ class Simulation:
         return (int(np.count_nonzero(s == sk.INTACT)), int(np.count_nonzero(s == sk.BROKEN_TENSION)),
                 int(np.count_nonzero(s == sk.BROKEN_SHEAR)))
 
+    def inverse_masses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(inverse masses, inverse moments of inertia), one per particle: 0 for a kinematic
+        (fixed) one. Those of the state last loaded, which may differ from `density`'s. Read
+        once and kept (they change only when a state is loaded)."""
+        if self._inverse_masses is None:
+            p = self.particles
+            self._inverse_masses = (get(p.inv_mass, self.n).astype(float),
+                                    get(p.inv_inertia, self.n).astype(float))
+        return self._inverse_masses
+
     def kinetic_energy(self) -> float:
-        from .observables import kinetic_energy
-        return kinetic_energy(self.velocities(), self.angular_velocities(), self.radii(), self.density)
+        """Kinetic energy (J) of the free particles, from their own masses (a kinematic one
+        has infinite mass: it carries none)."""
+        from .observables import kinetic_energy_of
+        return kinetic_energy_of(self.velocities(), self.angular_velocities(), *self.inverse_masses())
 
     def replace_wall(self, k: int, wall: Wall) -> None:
         """Replace wall k keeping its contact history (e.g. a servo-controlled plate)."""
@@ -1437,8 +1451,10 @@ class SystemView:
         return int(sweeps[self.s]), float(residual[self.s])
 
     def kinetic_energy(self) -> float:
-        from .observables import kinetic_energy
-        return kinetic_energy(self.velocities(), self.angular_velocities(), self.radii(), self.density)
+        from .observables import kinetic_energy_of
+        inv_mass, inv_inertia = self.batch.inverse_masses()
+        return kinetic_energy_of(self.velocities(), self.angular_velocities(),
+                                 inv_mass[self.slice], inv_inertia[self.slice])
 
     def state_dict(self) -> dict:
         """The system's state as `Simulation.state_dict` of it alone (split of the batch, kept

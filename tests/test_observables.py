@@ -116,14 +116,35 @@ def test_slab_volume_of_a_cap_is_pi_h2_3r_minus_h_over_3():
     assert top[0] == pytest.approx(math.pi * (0.5 * r) ** 2 * (3 * r - 0.5 * r) / 3.0, rel=1e-14)
 
 
-def test_kinetic_energy_counts_the_spin_with_two_fifths_m_r2():
+def test_kinetic_energy_counts_the_spin_with_two_fifths_m_r2_and_the_masses_of_a_loaded_state():
+    """A simulation's kinetic energy from its own masses: 1/2 m v^2 + 1/2 (2/5 m r^2) w^2 of
+    its density; after load_state_dict, the masses of the loaded state (the API audit of
+    session 44: it used the new simulation's density, 2.6 times too much for a state of
+    density 1000 loaded into one of 2600); a kinematic (fixed) grain carries none."""
+    from tcd import backend
+    from tcd.simulation import Simulation, SolverSettings
     rho = 2600.0
-    r = np.array([0.004, 0.002])
+    r = np.array([0.004, 0.002, 0.003])
     m = rho * 4.0 / 3.0 * math.pi * r**3
-    v = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    w = np.array([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0]])
-    ke = obs.kinetic_energy(v, w, r, rho)
-    assert ke == pytest.approx(0.5 * m[0] * 0.01 + 0.5 * 0.4 * m[1] * r[1] ** 2 * 900.0, rel=1e-14)
+    x = [[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.04, 0.0, 0.0]]
+    v = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    w = np.array([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0], [7.0, 0.0, 0.0]])
+    settings = SolverSettings(gravity=(0.0, 0.0, 0.0))
+    rel = 1e-13 if backend.precision() == "f64" else 1e-6
+    sim = Simulation(r, x, density=rho, velocity=v, settings=settings)
+    sim.set_angular_velocities(w)
+    exact = float(np.sum(0.5 * m * np.sum(v**2, axis=1) + 0.2 * m * r**2 * np.sum(w**2, axis=1)))
+    assert sim.kinetic_energy() == pytest.approx(exact, rel=rel)
+    light = Simulation(r, x, density=1000.0, velocity=v, settings=settings)
+    light.set_angular_velocities(w)
+    sim.load_state_dict(light.state_dict())
+    assert sim.kinetic_energy() == pytest.approx(exact * 1000.0 / rho, rel=rel)
+    held = Simulation(r, x, density=rho, velocity=v, fixed=[False, False, True], settings=settings)
+    held.set_angular_velocities(w)
+    assert held.kinetic_energy() == pytest.approx(0.5 * m[0] * 0.01 + 0.2 * m[1] * r[1]**2 * 900.0,
+                                                  rel=rel)
+    for o in (sim, light, held):
+        o.close()
 
 
 def test_smooth_window_includes_both_edges():
