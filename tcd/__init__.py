@@ -8,3 +8,18 @@ def init(arch: str = "cpu", precision: str = "f64", **kwargs) -> None:
     """Initialise the Taichi backend once: arch "cpu" or "gpu", precision "f64" or "f32"."""
     from .backend import init as _init   # importing taichi is slow: only when asked
     _init(arch, precision, **kwargs)
+
+
+# tcd.io, tcd.runner, tcd.walls... after a plain `import tcd`, as docs/scripting.md writes them
+# (imported when first named: most of them import taichi, which is slow to load)
+_SUBMODULES = frozenset({"analysis", "backend", "bench", "cli", "config", "contacts", "export",
+                         "figures", "io", "laws", "observables", "packing", "partitioned",
+                         "protocols", "render", "runner", "simulation", "solver", "state",
+                         "viewer", "walls"})
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        import importlib
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from typing import Sequence
 
 import numpy as np
@@ -90,6 +91,27 @@ def per_particle(name: str, values, n: int, *, broadcast: bool = True) -> np.nda
         raise ValueError(f"{name} must be finite (got NaN or infinity at particle "
                          f"{int(np.argwhere(~np.isfinite(arr))[0, 0])})")
     return np.array(arr)
+
+
+def _numbers(name: str, values) -> np.ndarray:
+    """`values` as a float array; ValueError naming `name` if they are not numbers."""
+    try:
+        return np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numbers: {exc}") from None
+
+
+def _check_distinct_centres(position: np.ndarray, system: np.ndarray) -> None:
+    """ValueError naming two particles of one system at the same centre: their contact has no
+    normal (the systems of a batch may overlap in space: they never meet)."""
+    keyed = np.column_stack([system.astype(float), position])
+    order = np.lexsort(keyed.T[::-1])
+    same = np.all(keyed[order[1:]] == keyed[order[:-1]], axis=1)
+    if same.any():
+        k = int(np.argmax(same))
+        i, j = sorted((int(order[k]), int(order[k + 1])))
+        raise ValueError(f"particles {i} and {j} have the same centre {position[i].tolist()} m: "
+                         "their contact has no normal")
 
 
 def _finite(name: str, value, *, low=None, positive=False) -> None:
@@ -284,6 +306,22 @@ class GridTooLarge(ValueError):
     """The broad phase's grid would have more than MAX_GRID_CELLS cells."""
 
 
+class WallList(list):
+    """`Simulation.walls`: the walls the solver sees, read-only. An edit of it in place (an
+    item assigned, a wall appended) would change what `walls`, `state_dict` and the saved
+    frames report but not what the grains meet; it is refused, naming the methods that do
+    both. Otherwise a list: `sim.walls + [wall]`, `list(sim.walls)` and comparisons work."""
+    def _refuse(self, *args, **kwargs):
+        raise TypeError("Simulation.walls is read-only: change a wall with "
+                        "sim.replace_wall(k, wall), all of them with sim.set_walls([...])")
+
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = _refuse
+    append = extend = insert = pop = remove = clear = sort = reverse = _refuse
+
+    def __reduce__(self):           # a copy or a pickle rebuilds it whole, without append
+        return (WallList, (list(self),))
+
+
 class Simulation:
     """Rigid spheres between kinematic walls, stepped by Contact Dynamics.
 
@@ -304,7 +342,7 @@ class Simulation:
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
                  time: float = 0.0, system=None):
         backend._require()
-        radius = np.asarray(radius, dtype=float)
+        radius = _numbers("radius", radius)
         if radius.ndim > 1:
             raise ValueError(f"radius must be one number per particle (shape (n,)), got shape "
                              f"{radius.shape}")
@@ -313,7 +351,7 @@ class Simulation:
         if n == 0:
             raise ValueError("a simulation needs at least one particle")
         # (n, 3) exactly: a transposed (3, n) array is refused, not silently reshaped
-        position = np.asarray(position, dtype=float)
+        position = _numbers("position", position)
         if position.shape != (n, 3):
             raise ValueError(f"position must have shape ({n}, 3) (one row x, y, z per particle), "
                              f"got {position.shape}")
@@ -364,8 +402,9 @@ class Simulation:
         self.systems = int(system[-1]) + 1
         if self.systems > MAX_SYSTEMS:
             raise ValueError(f"at most {MAX_SYSTEMS} systems in one simulation, got {self.systems}")
+        _check_distinct_centres(position, system)
         self.n = n
-        self.settings = settings
+        self._settings = settings
         self.bond_law = bond_law
         self.friction = float(friction)
         self.density = float(density)
@@ -402,6 +441,7 @@ class Simulation:
         if domain is None:
             domain = (position.min(axis=0) - radius.max(), position.max(axis=0) + radius.max())
         self.domain = (np.asarray(domain[0], float), np.asarray(domain[1], float))
+        self._cell_size_given = bool(cell_size)
         self.cell_size = (float(cell_size) if cell_size else
                           default_cell_size(radius, self.alert, self._half_skin))
         self.cell_size = max(self.cell_size, 1e-9)
@@ -434,7 +474,7 @@ class Simulation:
         p.systems[None] = self.systems
 
         self.wall_fields = acquire(WallFields, MAX_WALLS)
-        self.walls: list[Wall] = []
+        self._walls = WallList()
         self.set_walls(walls)
 
         self.grid = self._make_grid(self._grid_capacity_estimate(radius))
@@ -465,8 +505,10 @@ class Simulation:
             shown = dims if max(dims) < 10**12 else [f"{d:.3g}" for d in map(float, dims)]
             raise GridTooLarge(f"broad-phase grid of {shown} cells (at most "
                                f"{MAX_GRID_CELLS:.3g}) is too large: a domain of ({ext}) mm in "
-                               f"cells of {1e3 * self.cell_size:.4g} mm (about the largest "
-                               "grain's diameter): shrink the domain, or give a larger cell_size")
+                               f"cells of {1e3 * self.cell_size:.4g} mm "
+                               + ("(the cell_size given)" if self._cell_size_given else
+                                  "(about the largest grain's diameter)")
+                               + ": shrink the domain, or give a larger cell_size")
         if ncells * self.systems >= 2**31:
             raise ValueError(f"{self.systems} systems of {ncells} cells overflow the 32-bit cell "
                              "indices: enlarge cell_size or batch fewer systems")
@@ -521,8 +563,38 @@ class Simulation:
         span = 2.0 * (radius + 0.5 * self.alert + self._half_skin) / self.cell_size + 1.0
         return int(np.sum(span ** 3) * 1.15) + 64
 
+    # settings the simulation is built with (its schedule's data, its contacts' alert distance)
+    BUILT_WITH = ("schedule", "alert_ratio")
+
+    @property
+    def walls(self) -> WallList:
+        """The walls, in order (read-only: `set_walls`, `replace_wall`)."""
+        return self._walls
+
+    @property
+    def settings(self) -> SolverSettings:
+        """The solver settings. A new SolverSettings may replace them between steps (the next
+        step runs with its time step, tolerance, sweeps...), except for BUILT_WITH, which the
+        simulation was built with: changing those needs a new Simulation."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, new: SolverSettings) -> None:
+        if not isinstance(new, SolverSettings):
+            raise TypeError(f"settings must be a SolverSettings, got {type(new).__name__}")
+        fixed = [f"{k} ({getattr(self._settings, k)!r} -> {getattr(new, k)!r})"
+                 for k in self.BUILT_WITH if getattr(new, k) != getattr(self._settings, k)]
+        if fixed:
+            raise ValueError(f"settings {', '.join(fixed)}: fixed when the simulation was built; "
+                             "build a new Simulation with them (from sim.state_dict())")
+        self._settings = new
+
     def set_walls(self, walls: Sequence[Wall]) -> None:
-        """Replace the walls (e.g. mould -> split shear box). Wall contacts lose their history."""
+        """Replace the walls (e.g. mould -> split shear box). Wall contacts lose their history.
+        A warning names the walls that have particle centres on their wrong side (outside a
+        cylinder, behind a plane): the contact law pushes those particles through."""
+        if isinstance(walls, Wall):
+            raise ValueError("walls must be a list of walls: got one Wall (write [wall])")
         walls = list(walls)
         if len(walls) > MAX_WALLS:
             raise ValueError(f"at most {MAX_WALLS} walls, got {len(walls)}")
@@ -532,10 +604,37 @@ class Simulation:
                                  "(make it with walls.plane / walls.cylinder, or Wall.from_dict)")
             self._check_fits(k, w)
             self._check_system(w)
-        self.walls = walls
+        self._walls = WallList(walls)
         self._upload_walls(self.time)
         if hasattr(self, "contacts"):
             self._drop_wall_history()
+        self._warn_wrong_side(walls)
+
+    def _warn_wrong_side(self, walls) -> None:
+        """RuntimeWarning for each wall with particle centres on its wrong side now."""
+        if self.n == 0 or not walls:
+            return
+        x = get(self.particles.x, self.n).astype(float)
+        system = get(self.particles.system, self.n)
+        for k, w in enumerate(walls):
+            mine = x if w.system < 0 else x[system == w.system]
+            if not len(mine):
+                continue
+            d = mine - w.position(self.time)
+            a = np.asarray(w.direction, float)
+            s = d @ a
+            if w.kind == "plane":
+                wrong = s < 0.0
+                where = "behind it (a plane holds particles on its normal's side)"
+            else:
+                radial = np.linalg.norm(d - np.outer(s, a), axis=1)
+                wrong = (s >= w.extent[0]) & (s <= w.extent[1]) & (radial > w.radius)
+                where = "outside it (a cylinder holds particles inside)"
+            count = int(np.count_nonzero(wrong))
+            if count:
+                warnings.warn(f"wall {k} ({w.name!r}, {w.kind}): {count} particle centre(s) "
+                              f"{where}; the contact law will push them through it",
+                              RuntimeWarning, stacklevel=3)
 
     def _upload_walls(self, t: float) -> None:
         """All wall data (on set_walls); per step only `_move_walls` runs."""
@@ -1335,7 +1434,7 @@ class Simulation:
             raise ValueError(f"wall {k}: a {type(wall).__name__}, not a tcd.walls.Wall")
         self._check_fits(k, wall)
         self._check_system(wall)
-        self.walls[k] = wall
+        self._walls = WallList(self._walls[:k] + [wall] + self._walls[k + 1:])
         self._upload_walls(self.time)
 
     def _check_system(self, w: Wall) -> None:

@@ -606,3 +606,18 @@ def test_repeat_reports_the_median_run_not_the_mean():
     assert out["seconds_per_particle_step"] == 2e-6 and out["run"] == 2e-6
     assert out["repeats_seconds_per_particle_step"] == [9e-6, 1e-6, 2e-6]
 
+
+
+def test_every_module_of_the_package_is_reachable_after_a_plain_import_tcd():
+    """docs/scripting.md writes tcd.io.append_frame, tcd.runner...: after `import tcd` alone
+    they were AttributeErrors (session 44's API audit). A fresh interpreter, as a script has."""
+    package = pathlib.Path(tcd.__file__).parent
+    modules = sorted(p.stem for p in package.glob("*.py") if not p.stem.startswith("__"))
+    assert sorted(tcd._SUBMODULES) == modules        # a new module is listed too
+    code = ("import tcd\n"
+            "print(tcd.io.append_frame.__name__, tcd.runner.run_lock.__name__, "
+            "tcd.walls.plane.__name__)\n"
+            "try:\n    tcd.no_such_module\nexcept AttributeError as exc:\n    print(exc)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines()[-2:] == ["append_frame run_lock plane",
+                                            "module 'tcd' has no attribute 'no_such_module'"]

@@ -824,7 +824,7 @@ def test_bad_api_input_never_leaves_a_half_built_simulation_or_a_broken_process(
         sim.set_walls([walls.plane((0, 0, 0), (0, 0, 1), system=3, name="bad")])
     with pytest.raises(ValueError, match="tagged with system 2"):
         sim.replace_wall(0, before[0].moved(system=2))
-    assert sim.walls == before
+    assert list(sim.walls) == before
     sim.step()
     np.testing.assert_allclose(sim.wall_force(0), [0, 0, -mass(r) * G], rtol=1e-6)
     for k in (1, -1, 64, 0.5, True):
@@ -1108,3 +1108,62 @@ def test_set_velocities_sets_the_translational_velocities_only(backend):
     sim.set_velocities((0.0, 0.0, 0.5))
     np.testing.assert_allclose(sim.velocities(), [[0.0, 0.0, 0.5]] * 2, rtol=1e-6)
 
+
+
+def test_api_audit_of_session_44_what_a_script_could_get_silently_wrong():
+    """Session 44's audit of the Python API, as a user from LMGC90 would script a test."""
+    import warnings as w_
+    r = 0.004
+    floor = walls.plane((0, 0, 0), (0, 0, 1), name="floor")
+    sim = Simulation([r], [[0, 0, r]], walls=[floor])
+    # an edit of sim.walls in place reached the saved frames but not the solver
+    for edit in (lambda: sim.walls.__setitem__(0, floor.moved(point=(0, 0, 0.01))),
+                 lambda: sim.walls.append(floor), lambda: sim.walls.pop()):
+        with pytest.raises(TypeError, match=r"read-only: change a wall with "
+                                            r"sim.replace_wall\(k, wall\), all of them with "
+                                            r"sim.set_walls"):
+            edit()
+    assert list(sim.walls) == [floor]
+    raised = floor.moved(point=(0, 0, 0.01))
+    with pytest.warns(RuntimeWarning, match=r"wall 0 \('floor', plane\): 1 particle centre\(s\) "
+                                            "behind it"):
+        sim.set_walls([raised])
+    assert sim.state_dict()["walls/point"][0][2] == pytest.approx(0.01)
+    # settings the simulation was built with cannot change under it; the others can
+    with pytest.raises(ValueError, match=r"settings alert_ratio \(0.1 -> 0.5\): fixed when the "
+                                         "simulation was built"):
+        sim.settings = SolverSettings(alert_ratio=0.5)
+    sim.settings = SolverSettings(time_step=1e-4, tolerance=1e-5)
+    assert sim.settings.time_step == 1e-4
+    with pytest.raises(TypeError, match="settings must be a SolverSettings"):
+        sim.settings = {"time_step": 1e-4}
+    sim.close()
+    # errors that name the argument
+    with pytest.raises(ValueError, match="radius must be numbers"):
+        Simulation(["a", "b"], [[0, 0, 0], [1, 0, 0]])
+    with pytest.raises(ValueError, match="position must be numbers"):
+        Simulation([r], [["x", 0, 0]])
+    with pytest.raises(ValueError, match=r"walls must be a list of walls: got one Wall \(write \[wall\]\)"):
+        Simulation([r], [[0, 0, r]], walls=floor)
+    with pytest.raises(ValueError, match=r"cells of 1e-06 mm \(the cell_size given\)"):
+        Simulation([r, r], [[0, 0, r], [0.03, 0, r]], cell_size=1e-9)
+    # two centres at one point: their contact has no normal (allowed across the systems of
+    # a batch, which never meet)
+    with pytest.raises(ValueError, match=r"particles 0 and 2 have the same centre \[0.0, 0.0, 0.004\]"):
+        Simulation([r] * 3, [[0, 0, r], [0.02, 0, r], [0, 0, r]])
+    Simulation([r, r], [[0, 0, r], [0, 0, r]], system=[0, 1]).close()
+    # grains outside a mould: the contact law pulls them in; say so
+    mould = walls.cylinder((0, 0, 0), (0, 0, 1), 0.02, (0.0, 0.1), name="mould")
+    with pytest.warns(RuntimeWarning, match=r"wall 0 \('mould', cylinder\): 1 particle centre\(s\) "
+                                            "outside it"):
+        Simulation([r, r], [[0.03, 0, 0.05], [0, 0, 0.05]], walls=[mould]).close()
+    with w_.catch_warnings():
+        w_.simplefilter("error")            # inside, or outside the shell's axial range: no word
+        Simulation([r, r], [[0.03, 0, 0.2], [0, 0, 0.05]], walls=[mould, floor]).close()
+    # sim.walls is still a list to read: joined, copied, compared, pickled
+    import copy
+    import pickle
+    sim = Simulation([r], [[0, 0, r]], walls=[floor])
+    assert sim.walls + [mould] == [floor, mould] and list(sim.walls) == [floor] == sim.walls
+    assert copy.deepcopy(sim.walls) == pickle.loads(pickle.dumps(sim.walls)) == [floor]
+    sim.close()
