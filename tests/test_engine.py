@@ -1167,3 +1167,17 @@ def test_api_audit_of_session_44_what_a_script_could_get_silently_wrong():
     assert sim.walls + [mould] == [floor, mould] and list(sim.walls) == [floor] == sim.walls
     assert copy.deepcopy(sim.walls) == pickle.loads(pickle.dumps(sim.walls)) == [floor]
     sim.close()
+    # contact_arrays' impulse: what j receives from i (so R . n > 0 in compression), a global
+    # vector; a wall's is the wall force times H (docs/scripting.md)
+    stack = Simulation([r, r], [[0, 0, r], [0, 0, 3 * r]], walls=[floor])
+    stack.step(3)
+    c = stack.contact_arrays()
+    assert sorted(zip(c["i"].tolist(), c["j"].tolist())) == [(0, 1), (0, 2)]
+    assert np.all(np.sum(c["impulse"] * c["normal"], axis=1) > 0)
+    up = c["impulse"][c["j"] == 1][0]
+    # (to the solver's tolerance of 1e-4 on the impulses: 8.5e-5 off after 3 steps)
+    assert up[2] == pytest.approx(mass(r) * G * stack.settings.time_step, rel=2e-4)
+    np.testing.assert_allclose(c["impulse"][c["j"] == 2][0],
+                               stack.wall_force(0) * stack.settings.time_step,
+                               rtol=1e-12 if backend.precision() == "f64" else 1e-6)
+    stack.close()
