@@ -4,8 +4,10 @@
 prepared sample or checkpoint; see export.load_states) and writes one row per frame to
 PREFIX.h5 (a tcd series file, units on every dataset) and PREFIX.csv:
 
-  particles, contacts (particle pairs), wall_contacts, bonds_intact, bonds_broken
-  coordination_contacts = 2 contacts / particles (every listed pair: within the alert distance);
+  particles, contacts (particle pairs listed as contacts, within the alert distance: touching
+      or nearly; a pair that also holds an intact bond counts as a bond only, as the solver
+      takes it), wall_contacts, bonds_intact, bonds_broken
+  coordination_contacts = 2 contacts / particles;
   coordination_contacts_force_carrying = the same over the contacts that pressed their grains
   together over the last step (observables.carries_force);
   coordination_bonds = 2 bonds_intact / particles
@@ -19,9 +21,9 @@ PREFIX.h5 (a tcd series file, units on every dataset) and PREFIX.csv:
       the wall. Tension is positive: a confined sample has negative diagonal terms. Multiply by
       the packing fraction for the stress over the sample's volume. The symmetric part is
       written (the antisymmetric part is the unbalanced torque, zero at equilibrium).
-  fabric_xx ... fabric_xy (1): (1 / M) sum n (x) n over the M particle pairs in contact or
-      bonded (trace 1; 1/3 on the diagonal for an isotropic network), and fabric_anisotropy,
-      its largest minus its smallest eigenvalue.
+  fabric_xx ... fabric_xy (1): (1 / M) sum n (x) n over the M particle pairs listed as
+      contacts or bonded, each pair once (trace 1; 1/3 on the diagonal for an isotropic
+      network), and fabric_anisotropy, its largest minus its smallest eigenvalue.
 
 Forces need the time step H, which a states file gives through its scenario; for a checkpoint
 (no scenario) give it with `--time-step` (otherwise the force and stress columns are left out).
@@ -51,6 +53,20 @@ def _pairs(frame, group):
     if group == "bonds":
         keep &= np.asarray(frame.get("bonds/state", np.zeros(len(i), np.int8))) == io.BOND_INTACT
     return i[keep], j[keep], imp[keep]
+
+
+def _unbonded_contacts(frame):
+    """`_pairs(frame, "contacts")` less the pairs that also hold an intact bond: in the frame
+    written as the bonds are made the contact list still has every pair just bonded (the
+    solver takes a bonded pair as its bond from the next step), so each pair counts once."""
+    ci, cj, cimp = _pairs(frame, "contacts")
+    bi, bj, _ = _pairs(frame, "bonds")
+    if not len(bi) or not len(ci):
+        return ci, cj, cimp
+    n = len(frame["particles/x"])
+    key = np.minimum(ci, cj) * n + np.maximum(ci, cj)
+    keep = ~np.isin(key, np.minimum(bi, bj) * n + np.maximum(bi, bj))
+    return ci[keep], cj[keep], cimp[keep]
 
 
 def wall_normals(frame, i, w):
@@ -89,12 +105,12 @@ def grain_stress(frame, h: float) -> np.ndarray:
 
 
 def fabric(frame) -> np.ndarray:
-    """(1 / M) sum n (x) n over the particle pairs in contact or bonded (3x3, trace 1; zeros
-    when there is none)."""
+    """(1 / M) sum n (x) n over the M particle pairs listed as contacts (within the alert
+    distance: touching or nearly) or bonded, each pair once (3x3, trace 1; zeros when there
+    is none)."""
     x = np.asarray(frame["particles/x"], dtype=float)
     branches = []
-    for group in ("contacts", "bonds"):
-        i, j, _ = _pairs(frame, group)
+    for i, j, _ in (_unbonded_contacts(frame), _pairs(frame, "bonds")):
         branches.append(x[j] - x[i])
     b = np.concatenate(branches)
     length = np.linalg.norm(b, axis=1)
@@ -107,7 +123,7 @@ def fabric(frame) -> np.ndarray:
 def frame_row(frame, h: float | None) -> dict:
     x = np.asarray(frame["particles/x"], dtype=float)
     n = len(x)
-    ci, cj, cimp = _pairs(frame, "contacts")
+    ci, cj, cimp = _unbonded_contacts(frame)
     bi, _, _ = _pairs(frame, "bonds")
     state = np.asarray(frame.get("bonds/state", np.zeros(0, np.int8)))
     wall_contacts = int(np.count_nonzero(np.asarray(frame.get("contacts/j", [])) >= n))

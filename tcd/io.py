@@ -540,6 +540,20 @@ def frame_count(path) -> int:
         return len(_frame_names(f, os.fspath(path)))
 
 
+def last_frame_clock(path) -> tuple[float, int, str] | None:
+    """(time, step, stage) of the last frame of the states file `path` (None: no file, or
+    no frame), read from its attributes only."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        return None
+    with _open_tcd(path, FILE_STATES) as f:
+        names = _frame_names(f, path)
+        if not names:
+            return None
+        attrs = f["frames"][names[-1]].attrs
+        return float(attrs["time"]), int(attrs["step"]), str(attrs["stage"])
+
+
 def keep_frames(path, count: int) -> int:
     """Cut the states file `path` back to its first `count` frames (atomically: the file is
     either as it was or cut); returns how many frames were dropped. A resumed run calls it

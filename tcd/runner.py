@@ -473,8 +473,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                               "end_time": batch.time, **phases[k].info}]
             res["last_phase"] = phases[k].to_json()
             _write_series(dirs[seed], "shear", arrays, attrs)
-            io.append_frame(states, frame_of(view), time=batch.time, step=batch.step_index,
-                            stage="shear", scenario_text=scenario.text, tcd_version=__version__)
+            _append_last_frame(states, view, "shear", scenario.text)
             samples.append(_write_sample_summary(dirs[seed], seed, res))
         summary = summarize(scenario, samples)
         summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
@@ -724,8 +723,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                                {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
                                 "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
                                 "phases": stage_phases})
-        io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage=stage.kind,
-                        scenario_text=scn.text, tcd_version=__version__)    # and its last
+        _append_last_frame(states, sim, stage.kind, scn.text)       # and its last
         series = {}
         stage_idx += 1
         phase_idx = 0
@@ -738,6 +736,14 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
 SERIES_UNITS = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
                 "top_plate_shear_force": "N"}
+
+
+def _append_last_frame(states: pathlib.Path, sim, stage: str, scenario_text: str) -> None:
+    """A stage's last state, unless the snapshot of this very step ends the file already (a
+    snapshot interval that ends with the stage wrote the same frame twice)."""
+    if io.last_frame_clock(states) != (float(sim.time), int(sim.step_index), stage):
+        io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index, stage=stage,
+                        scenario_text=scenario_text, tcd_version=__version__)
 
 
 def _shear_numbers(proto, sim, phase, arrays: dict, states, first_frame) -> tuple[dict, dict]:
