@@ -10,6 +10,10 @@ an instantaneous elastic jump, a delayed elastic part (time constant eta_k / K_k
 viscous flow. The script steps the pair with Contact Dynamics and prints the opening against
 F J(t). The force stays far below the bond's yield force (sigma_y pi r^2).
 
+The pair lies exactly along x. Off an axis, the time step of 5e-3 s is too large for a grain
+free to roll about its one loaded bond (F H^2 / (m L) = 8.9 here, unstable above about 5:
+docs/physics.md, "Known limitations"); pass a time step of 2e-3 s or less to `run` then.
+
     python examples/bonded_creep.py [--force 2] [--time 30] [--mode burgers|paper] [--arch cpu|gpu]
 """
 from __future__ import annotations
