@@ -755,7 +755,7 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         "nan_velocity": ({**arrays, "particles/v": arrays["particles/v"] * np.nan},
                          r"particles/v must be finite \(got NaN or infinity at particle 0\)"),
         "short_f_ext": ({**arrays, "particles/f_ext": arrays["particles/f_ext"][:-1]},
-                        r"particles/f_ext has shape \(\d+, 3\) and dtype float64, expected "
+                        r"particles/f_ext has shape \(\d+, 3\) and dtype float(32|64), expected "
                         r"\(\d+, 3\) numbers"),
         # what only a simulation's load checked (session 44: seed 3 ran before seed 4's
         # negative inverse masses were found)
