@@ -16,8 +16,9 @@ Algorithm (one frame):
    sphere ambient occlusion (each neighbour sphere of radius r at distance l occludes a point
    with normal n by max(n.d, 0) (r / l)^2, summed over the spheres of the grid cells within an
    AO radius of the point; each sphere counted once, in the first cell common to its box and the
-   query box). Deterministic, no noise. Cut faces are flat and unlit (the sphere colour times
-   CUT_FACE_SHADE, a darker rim), so a section shows its value colours faithfully.
+   query box). Deterministic, no noise. Cut faces are flat and unlit (the sphere's colour,
+   CUT_FACE_SHADE = 1, with a darker rim), so a section's cut faces show the colour bar's
+   colours exactly; spheres seen whole are lit (up to 1.14 times their colour, clipped).
 4. Walls are composited over the result in the same kernel: plane plates (disks) and finite
    cylinders drawn translucent, with the disk rims, cylinder rims and (via a grazing-angle
    term) the cylinder silhouettes drawn as dark outlines. Walls on the removed side of the
@@ -72,9 +73,12 @@ def check_output(out, frame: int = -1) -> None:
     if out.is_dir():
         raise ValueError(f"--out {out}: is a directory, expected an image file name")
 
-#: layer colours: 0 binder course (dark grey-brown), 1 surface course (light grey-beige)
+#: course colours: binder course (dark grey-brown), surface course (light grey-beige). A
+#: grain's layer id is its course's position in the prepare stage's `courses`, read from the
+#: states file's scenario (the default ("binder", "surface") when the file has none).
 LAYER_COLORS = np.array([[0.36, 0.29, 0.23], [0.80, 0.76, 0.68]])
-LAYER_NAMES = ("binder course", "surface course")
+COURSE_COLOR = {"binder": 0, "surface": 1}
+DEFAULT_COURSES = ("binder", "surface")
 NO_BOND_COLOR = (0.72, 0.72, 0.72)
 COLORMAPS = {"speed": "viridis", "vx": "coolwarm", "bond-damage": "plasma"}
 
@@ -83,7 +87,8 @@ AMBIENT = 0.42
 DIFFUSE = 0.72
 AO_STRENGTH = 0.9
 AO_RADIUS_FACTOR = 1.0          # AO radius = factor * radius of the sphere hit (capped to a cell)
-CUT_FACE_SHADE = 0.88           # colour factor of cut faces (flat, unlit)
+CUT_FACE_SHADE = 1.0            # colour factor of cut faces (flat, unlit): their colour is
+                                # the colour bar's (0.88 before session 44 misread values 12 %)
 CUT_RIM_SHADE = 0.45            # albedo factor of the rim of cut faces
 CUT_RIM_PIXELS = 1.2
 WALL_COLOR = (0.30, 0.42, 0.60)
@@ -953,7 +958,8 @@ def load_frame(path, frame: int = -1) -> dict:
         g = f["frames"][name]
         out = {"time": float(_decode(g.attrs.get("time", math.nan))),
                "step": int(_decode(g.attrs.get("step", -1))),
-               "stage": str(_decode(g.attrs.get("stage", "")))}
+               "stage": str(_decode(g.attrs.get("stage", ""))),
+               "courses": scenario_courses(str(_decode(f.attrs.get("scenario", ""))))}
         n = len(g["particles/x"]) if "particles/x" in g else 0
         if "particles" in g and ("particles/x" not in g or "particles/radius" not in g):
             raise ValueError(f"{where}: particles/x and particles/radius are required")
@@ -1034,14 +1040,53 @@ def particle_colors(frame: dict, mode: str, value_range=None):
     """(colors (N,3), ColorScale or None) for a colour mode."""
     n = len(frame["x"])
     if mode == "layer":
-        layer = np.clip(np.asarray(frame["layer"], int), 0, 1)
+        table = np.array([COURSE_COLOR.get(kind, 1) for kind in _courses(frame)], int)
+        layer = np.clip(np.asarray(frame["layer"], int), 0, len(table) - 1)
         # a small per-grain brightness jitter (fixed by index) keeps touching grains apart
         jitter = 1.0 + 0.10 * (((np.arange(n) * 2654435761) % 1000) / 1000.0 - 0.5)
-        return np.clip(LAYER_COLORS[layer] * jitter[:, None], 0, 1), None
+        return np.clip(LAYER_COLORS[table[layer]] * jitter[:, None], 0, 1), None
     values = particle_values(frame, mode)
     lo, hi = default_range(mode, values) if value_range is None else value_range
     scale = color_scale(mode, (lo, hi))
     return value_colors(values, scale.cmap, lo, hi), scale
+
+
+def _courses(frame: dict) -> tuple:
+    """The course kind of each layer id of `frame` (its prepare stage's `courses`); layer ids
+    past them (or a frame without its scenario) read as DEFAULT_COURSES, then "layer k"."""
+    courses = tuple(frame.get("courses") or DEFAULT_COURSES)
+    top = int(np.max(frame["layer"])) + 1 if len(frame["layer"]) else 0
+    return courses + tuple(f"layer {k}" for k in range(len(courses), top))
+
+
+def layer_legend(frame: dict) -> list:
+    """[(label, rgb)] of the courses present in `frame`, from the top course down, a kind
+    listed once."""
+    kinds = _courses(frame)
+    present = sorted(set(np.clip(np.asarray(frame["layer"], int), 0, len(kinds) - 1).tolist()),
+                     reverse=True)
+    legend = {}
+    for k in present:
+        kind = kinds[k]
+        label = f"{kind} course" if kind in COURSE_COLOR else kind
+        legend.setdefault(label, LAYER_COLORS[COURSE_COLOR.get(kind, 1)])
+    return list(legend.items())
+
+
+def scenario_courses(text: str):
+    """`courses` of the first prepare stage of the scenario TOML `text` (None if it has none
+    or cannot be read)."""
+    import tomllib
+    try:
+        stages = tomllib.loads(text).get("stage", [])
+    except (tomllib.TOMLDecodeError, TypeError, AttributeError):
+        return None
+    for stage in stages if isinstance(stages, list) else []:
+        if isinstance(stage, dict) and stage.get("kind") == "prepare":
+            courses = stage.get("courses", list(DEFAULT_COURSES))
+            if isinstance(courses, list) and all(isinstance(c, str) for c in courses):
+                return tuple(courses)
+    return None
 
 
 def value_colors(values, cmap: str, lo: float, hi: float) -> np.ndarray:
@@ -1132,6 +1177,11 @@ def _frame_title(frame: dict) -> str:
     return f"t = {frame['time']:.4g} s{stage}"
 
 
+def render_area_width(width: int, colorbar: bool) -> int:
+    """Width of the area the spheres are drawn in: the image less the colour bar's strip."""
+    return max(1, int(round(width * (1.0 - COLORBAR_STRIP)))) if colorbar else width
+
+
 def render_frame(frame: dict, *, color="layer", section=None, camera="iso", width=1600,
                  height=1200, colorbar=True, value_range=None, walls=True) -> np.ndarray:
     """Render a snapshot (a load_frame dict) coloured by `color` (one of COLOR_MODES).
@@ -1141,9 +1191,8 @@ def render_frame(frame: dict, *, color="layer", section=None, camera="iso", widt
     default from the frame. walls: draw the frame's walls.
     """
     colors, scale = particle_colors(frame, color, value_range)
-    render_width = width
-    if colorbar and scale is not None:      # keep a white strip on the right for the bar
-        render_width = max(1, int(round(width * (1.0 - COLORBAR_STRIP))))
+    # keep a white strip on the right for the bar
+    render_width = render_area_width(width, colorbar and scale is not None)
     image, cam, _ = _render(frame["x"], frame["radius"], colors, width=render_width,
                             height=height, camera=camera, section=section,
                             walls=WallSet.from_frame(frame) if walls else None,
@@ -1155,9 +1204,7 @@ def render_frame(frame: dict, *, color="layer", section=None, camera="iso", widt
         image = np.concatenate([image, strip], axis=1)
     legend = None
     if color == "layer":
-        present = sorted(set(np.clip(np.asarray(frame["layer"], int), 0, 1).tolist()),
-                         reverse=True)
-        legend = [(LAYER_NAMES[k], LAYER_COLORS[k]) for k in present]
+        legend = layer_legend(frame)
     elif color == "bond-damage" and np.isnan(particle_values(frame, color)).any():
         legend = [("no bonds", NO_BOND_COLOR)]
     return annotate(image, scale=scale, legend=legend, title=_frame_title(frame),
@@ -1208,7 +1255,11 @@ def render_file(path, out, *, frame=-1, frames=None, color="layer", section=None
         first = load_frame(path, indices[0])
         walls = WallSet.from_frame(first)
         plane = resolve_section(section, first["x"], walls)
-        camera = _resolve_camera(camera, first["x"], first["radius"], width, height, plane)
+        # framed for the area the frames are drawn in (a perspective camera framed for the
+        # whole width cut the grains off at the colour bar's strip, and zoomed 13 % closer
+        # than the same frame rendered alone: session 44's audit)
+        camera = _resolve_camera(camera, first["x"], first["radius"],
+                                 render_area_width(width, color != "layer"), height, plane)
     with atomic_output(out) as tmp:
         if out.suffix.lower() == ".gif":
             import imageio.v3 as iio

@@ -104,10 +104,10 @@ def test_section_removes_what_lies_in_front_and_shows_cut_faces():
     assert not background(whole)[masks["front"]].any()
     assert background(sliced)[masks["front"]].all(), "sphere in front of the plane is removed"
     np.testing.assert_array_equal(sliced[masks["back"]], whole[masks["back"]])
-    # the cut face: a flat disk of the sphere's full radius, coloured like it, slightly darker
+    # the cut face: a flat disk of the sphere's full radius in the sphere's own colour, the
+    # colour bar's (session 44: it was 0.88 of it, and values read off the bar were 12 % off)
     face = sliced[disk_masks(cut[0], cut[2], r - 1.5 * PX)[0]]
-    expected = round(255 * render.CUT_FACE_SHADE)
-    assert np.all(face[:, 1] == expected) and np.all(face[:, [0, 2]] == 0)
+    assert np.all(face[:, 1] == 255) and np.all(face[:, [0, 2]] == 0)
     # without the cut, the same pixels show a shaded sphere (not flat)
     shaded = whole[disk_masks(cut[0], cut[2], r - 1.5 * PX)[0]][:, 1]
     assert shaded.max() - shaded.min() > 60
@@ -278,6 +278,59 @@ def test_failed_write_leaves_previous_file_intact(tmp_path, monkeypatch):
         render.write_image(np.zeros((4, 4, 3), np.uint8), out)
     assert out.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["image.png"]
+
+
+def test_layers_take_the_colour_and_name_of_their_course(states, tmp_path):
+    """Layer ids are positions in the prepare stage's `courses`: with courses = ["surface",
+    "binder"] layer 0 is a surface course. The renderer took 0 as binder, 1 as surface
+    whatever the scenario said (session 44's audit)."""
+    import h5py
+    frame = render.load_frame(states, 0)
+    assert frame["courses"] is None                       # its scenario is empty: the default
+    assert [label for label, _ in render.layer_legend(frame)] == ["surface course",
+                                                                  "binder course"]
+    swapped = tmp_path / "swapped.h5"
+    import shutil
+    shutil.copy(states, swapped)
+    with h5py.File(swapped, "a") as f:
+        f.attrs["scenario"] = ('name = "s"\n[[stage]]\nkind = "prepare"\n'
+                               'courses = ["surface", "binder"]\n')
+    frame = render.load_frame(swapped, 0)
+    assert frame["courses"] == ("surface", "binder")
+    colors, _ = render.particle_colors(frame, "layer")
+    dark = colors.mean(axis=1) < 0.5
+    np.testing.assert_array_equal(dark, np.asarray(frame["layer"]) == 1)   # layer 1: binder
+    labels = [label for label, _ in render.layer_legend(frame)]
+    assert labels == ["binder course", "surface course"]                  # top course first
+    three = dict(frame, courses=("binder", "binder", "surface"),
+                 layer=np.array([0, 1, 2] * (len(frame["layer"]) // 3)
+                                + [0] * (len(frame["layer"]) % 3), np.int32))
+    assert [label for label, _ in render.layer_legend(three)] == ["surface course",
+                                                                  "binder course"]
+
+
+def test_an_animation_frames_its_camera_as_the_still_image(tmp_path):
+    """A perspective GIF with a colour bar was framed for the whole width but drawn in the
+    85 % left of the bar: grains cut at the bar's strip, 13 % closer than the still (session
+    44's audit). Frame 0 of the GIF now shows the grains where the still does."""
+    import h5py
+    path = write_states(tmp_path / "wide.h5", frames=2, n=60, seed=3)
+    with h5py.File(path, "a") as f:             # grains over x = +-100 mm: framed by the width
+        for g in f["frames"].values():
+            x = g["particles/x"][...]
+            x[:, 0] *= 5.0
+            g["particles/x"][...] = x
+    still, gif = tmp_path / "still.png", tmp_path / "anim.gif"
+    kw = dict(color="speed", camera="perspective", width=300, height=150)
+    render.render_file(path, still, frame=0, **kw)
+    render.render_file(path, gif, frames=[0, 1], **kw)
+    a = iio.imread(still)[:, :, :3]
+    b = iio.imread(gif, index=0)[:, :, :3]
+    area = render.render_area_width(300, True)
+    grains_a = ~background(a[:, :area])
+    grains_b = ~background(b[:, :area])
+    assert grains_a.sum() > 500
+    assert np.mean(grains_a != grains_b) < 0.01
 
 
 def test_a_render_onto_a_file_keeps_its_mode_and_makes_its_folder(tmp_path):
