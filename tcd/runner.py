@@ -465,6 +465,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             states = dirs[seed] / "states.h5"
             numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
                                             res.get("stage_first_frame", {}).get("0"))
+            for text in numbers.get("warnings", []):
+                print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
             numbers["wall_time_s"] = wall
             numbers["steps"] = int(step_in_phase)
             res["stages"]["0:shear"] = numbers
@@ -709,8 +711,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                             and rec.get("stage") == stage.kind]
             numbers = proto.finish(sim, stage_phases)
             attrs = {}
-            for text in numbers.get("warnings", []):
-                print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
+        for text in numbers.get("warnings", []):
+            print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(sum(rec["steps"] for rec in result.get("phases", [])
                                    if rec.get("stage_index", stage_idx) == stage_idx
