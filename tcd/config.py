@@ -146,9 +146,17 @@ class SolverConfig(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> "SolverConfig":
-        _raise_if([("check_every", f"must not exceed max_sweeps ({self.max_sweeps}), got "
-                                   f"{self.check_every}: convergence would never be checked")]
-                  if self.check_every > self.max_sweeps else [])
+        problems = []
+        if self.check_every > self.max_sweeps:
+            problems.append(("check_every", f"must not exceed max_sweeps ({self.max_sweeps}), "
+                                            f"got {self.check_every}: convergence would never "
+                                            "be checked"))
+        if self.schedule == "resident" and self.convergence == "quad":
+            # (the simulation refuses it too; here, before a run writes anything)
+            problems.append(("convergence", "\"quad\" is not measured by the resident schedule "
+                                            "(it has no 'Quad ' check pass): use convergence = "
+                                            "\"impulse\", or schedule = \"coloured\""))
+        _raise_if(problems)
         return self
 
     def to_settings(self):

@@ -224,6 +224,17 @@ def test_unknown_top_level_key(tmp_path):
     assert_names(err, "sedes", "unknown key", "seeds")
 
 
+def test_resident_schedule_with_quad_convergence_is_refused_when_read(tmp_path):
+    """The simulation refused it only when built, after `tcd run` had written run.json,
+    scenario.toml and the sample's folder (session 44's docs audit)."""
+    err = refusal(tmp_path, MINIMAL.replace("[[stage]]", '[solver]\nschedule = "resident"\n'
+                                            'convergence = "quad"\n\n[[stage]]', 1))
+    assert_names(err, "solver.convergence", "not measured by the resident schedule")
+    load_scenario(write(tmp_path, MINIMAL.replace(
+        "[[stage]]", '[solver]\nschedule = "coloured"\nconvergence = "quad"\n\n[[stage]]', 1),
+        name="coloured.toml"))
+
+
 def test_unknown_key_inside_a_stage(tmp_path):
     err = refusal(tmp_path, MINIMAL + "ring_heigth_mm = 60\n")
     assert_names(err, "stage[2].ring_heigth_mm", "unknown key", "ring_height_mm")
