@@ -11,15 +11,10 @@ def init(arch: str = "cpu", precision: str = "f64", **kwargs) -> None:
 
 
 # tcd.io, tcd.runner, tcd.walls... after a plain `import tcd`, as docs/scripting.md writes them
-# (imported when first named: most of them import taichi, which is slow to load)
-_SUBMODULES = frozenset({"analysis", "backend", "bench", "cli", "config", "contacts", "export",
-                         "figures", "io", "laws", "observables", "packing", "partitioned",
-                         "protocols", "render", "runner", "simulation", "solver", "state",
-                         "viewer", "walls"})
-
-
+# (each imported when first named: most of them import taichi, which is slow to load)
 def __getattr__(name: str):
-    if name in _SUBMODULES:
-        import importlib
+    import importlib
+    import pkgutil
+    if not name.startswith("_") and name in {m.name for m in pkgutil.iter_modules(__path__)}:
         return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

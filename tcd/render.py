@@ -36,6 +36,7 @@ frames neither reallocate nor recompile. Units are SI (m, m/s) inside; labels us
 import argparse
 import contextlib
 import dataclasses
+import functools
 import importlib.util
 import math
 import os
@@ -1040,7 +1041,7 @@ def particle_colors(frame: dict, mode: str, value_range=None):
     """(colors (N,3), ColorScale or None) for a colour mode."""
     n = len(frame["x"])
     if mode == "layer":
-        table = np.array([COURSE_COLOR.get(kind, 1) for kind in _courses(frame)], int)
+        _, table = _courses(frame)
         layer = np.clip(np.asarray(frame["layer"], int), 0, len(table) - 1)
         # a small per-grain brightness jitter (fixed by index) keeps touching grains apart
         jitter = 1.0 + 0.10 * (((np.arange(n) * 2654435761) % 1000) / 1000.0 - 0.5)
@@ -1051,28 +1052,30 @@ def particle_colors(frame: dict, mode: str, value_range=None):
     return value_colors(values, scale.cmap, lo, hi), scale
 
 
-def _courses(frame: dict) -> tuple:
-    """The course kind of each layer id of `frame` (its prepare stage's `courses`); layer ids
-    past them (or a frame without its scenario) read as DEFAULT_COURSES, then "layer k"."""
+def _courses(frame: dict) -> tuple[tuple, np.ndarray]:
+    """The course kind of each layer id of `frame` (its prepare stage's `courses`; layer ids
+    past them, or a frame without its scenario, read as DEFAULT_COURSES, then "layer k"),
+    and each one's row of LAYER_COLORS."""
     courses = tuple(frame.get("courses") or DEFAULT_COURSES)
     top = int(np.max(frame["layer"])) + 1 if len(frame["layer"]) else 0
-    return courses + tuple(f"layer {k}" for k in range(len(courses), top))
+    kinds = courses + tuple(f"layer {k}" for k in range(len(courses), top))
+    return kinds, np.array([COURSE_COLOR.get(kind, 1) for kind in kinds], int)
 
 
 def layer_legend(frame: dict) -> list:
     """[(label, rgb)] of the courses present in `frame`, from the top course down, a kind
     listed once."""
-    kinds = _courses(frame)
+    kinds, table = _courses(frame)
     present = sorted(set(np.clip(np.asarray(frame["layer"], int), 0, len(kinds) - 1).tolist()),
                      reverse=True)
     legend = {}
     for k in present:
-        kind = kinds[k]
-        label = f"{kind} course" if kind in COURSE_COLOR else kind
-        legend.setdefault(label, LAYER_COLORS[COURSE_COLOR.get(kind, 1)])
+        label = f"{kinds[k]} course" if kinds[k] in COURSE_COLOR else kinds[k]
+        legend.setdefault(label, LAYER_COLORS[table[k]])
     return list(legend.items())
 
 
+@functools.lru_cache(maxsize=8)     # one parse per file, not one per frame of an animation
 def scenario_courses(text: str):
     """`courses` of the first prepare stage of the scenario TOML `text` (None if it has none
     or cannot be read)."""

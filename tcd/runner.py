@@ -153,11 +153,7 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     check_samples(scenario, [seed for seed in pending if not (
         resume and (out / f"sample_{seed}" / "checkpoint.h5").is_file())])
     backend.check_available(scenario.backend.arch)     # before anything is written
-    if resume:
-        record_scenario(scenario, out, resume)      # its checks: a refused resume writes nothing
-    with run_lock(out):        # one process writes into `out` at a time
-        if not resume:
-            record_scenario(scenario, out, resume)
+    with recorded_run(scenario, out, resume):
         if jobs > 1 and len(pending) > 1:
             import concurrent.futures
             import multiprocessing
@@ -267,6 +263,19 @@ def run_lock(out: pathlib.Path):
         yield
 
 
+@contextlib.contextmanager
+def recorded_run(scenario, out: pathlib.Path, resume: bool):
+    """`record_scenario` under the run's lock (`run_lock`), held for the body: one process
+    writes into `out` at a time. A resume's checks come before the lock is taken, so that a
+    refused resume writes nothing, not even the lock file."""
+    if resume:
+        record_scenario(scenario, out, resume)
+    with run_lock(out):
+        if not resume:
+            record_scenario(scenario, out, resume)
+        yield
+
+
 def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     """A new run: create `out` and keep the scenario's text (scenario.toml) and backend
     (run.json). A resumed one: refuse, before anything is written, a scenario or backend other
@@ -362,11 +371,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     if not resume:
         check_samples(scenario, seeds)
     backend.check_available(scenario.backend.arch)     # before anything is written
-    if resume:
-        record_scenario(scenario, out, resume)      # its checks: a refused resume writes nothing
-    with run_lock(out):        # one process writes into `out` at a time
-        if not resume:
-            record_scenario(scenario, out, resume)
+    with recorded_run(scenario, out, resume):
         backend.init(scenario.backend.arch, scenario.backend.precision)
         t_start = time.perf_counter()
         dirs = {seed: out / f"sample_{seed}" for seed in seeds}
@@ -465,8 +470,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             states = dirs[seed] / "states.h5"
             numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
                                             res.get("stage_first_frame", {}).get("0"))
-            for text in numbers.get("warnings", []):
-                print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
+            _print_warnings(seed, numbers)
             numbers["wall_time_s"] = wall
             numbers["steps"] = int(step_in_phase)
             res["stages"]["0:shear"] = numbers
@@ -711,8 +715,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                             and rec.get("stage") == stage.kind]
             numbers = proto.finish(sim, stage_phases)
             attrs = {}
-        for text in numbers.get("warnings", []):
-            print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
+        _print_warnings(seed, numbers)
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(sum(rec["steps"] for rec in result.get("phases", [])
                                    if rec.get("stage_index", stage_idx) == stage_idx
@@ -738,6 +741,12 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
 SERIES_UNITS = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
                 "top_plate_shear_force": "N"}
+
+
+def _print_warnings(seed: int, numbers: dict) -> None:
+    """A finished stage's warnings (its numbers' "warnings"), one line each on stderr."""
+    for text in numbers.get("warnings", []):
+        print(f"tcd: warning: seed {seed}: {text}", file=sys.stderr)
 
 
 def _append_last_frame(states: pathlib.Path, sim, stage: str, scenario_text: str) -> None:

@@ -1565,13 +1565,12 @@ class SystemView:
         return self._split
 
 
-def check_state_arrays(d: dict) -> int:
+def check_state_arrays(d: dict) -> None:
     """Refuse, naming the key, a state (the keys of `Simulation.state_dict`, at least
     STATE_KEYS) whose arrays would corrupt the run once installed: wrong lengths (they were
     zero-padded or cut), indices out of range, NaN or infinite numbers, negative inverse
-    masses, bond states other than intact or broken. Returns its particle count.
-    `Simulation.load_state_dict` asks it, and `runner.read_prepared` of a sample before any
-    simulation is built."""
+    masses, bond states other than intact or broken. `Simulation.load_state_dict` asks it,
+    and `runner.read_prepared` of a sample before any simulation is built."""
     n = len(d["particles/radius"])
     for key in ("x", "v", "w"):
         per_particle(f"state's particles/{key}", d["particles/" + key], n, broadcast=False)
@@ -1626,4 +1625,3 @@ def check_state_arrays(d: dict) -> int:
         if "bonds/" + key in d and key not in ("i", "j", "state"):
             shape = (b, 3) if key in Simulation._BOND_VECTORS else (b,)
             need("bonds/" + key, shape, finite=key != "broken_time")
-    return n

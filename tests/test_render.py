@@ -285,6 +285,9 @@ def test_layers_take_the_colour_and_name_of_their_course(states, tmp_path):
     "binder"] layer 0 is a surface course. The renderer took 0 as binder, 1 as surface
     whatever the scenario said (session 44's audit)."""
     import h5py
+    from tcd.config import PrepareStage
+    # a file without its scenario reads as a prepare stage's default courses
+    assert render.DEFAULT_COURSES == tuple(PrepareStage.model_fields["courses"].default)
     frame = render.load_frame(states, 0)
     assert frame["courses"] is None                       # its scenario is empty: the default
     assert [label for label, _ in render.layer_legend(frame)] == ["surface course",
