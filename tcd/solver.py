@@ -74,23 +74,61 @@ def point_velocity(p: ti.template(), wl: ti.template(), b, offset):
 
 @ti.func
 def apply_impulse(p: ti.template(), i, j, n, dr):
-    """Impulse dr on j at -r_j n, -dr on i at r_i n."""
-    ri = p.radius[i]
-    # plain load/store (no atomics): callers never let two threads touch one body
-    p.v[i] = p.v[i] - dr * p.inv_mass[i]
-    p.w[i] = p.w[i] - p.inv_inertia[i] * (ri * n).cross(dr)
+    """A contact's impulse: dr on j at -r_j n, -dr on i at r_i n."""
+    rj = 0.0
     if j < p.count[None]:
         rj = p.radius[j]
+    apply_impulse_at(p, i, j, n, dr, p.radius[i], rj)
+
+
+@ti.func
+def apply_impulse_at(p: ti.template(), i, j, n, dr, ai, aj):
+    """Impulse dr on j at -aj n from its centre, -dr on i at ai n from its centre."""
+    # plain load/store (no atomics): callers never let two threads touch one body
+    p.v[i] = p.v[i] - dr * p.inv_mass[i]
+    p.w[i] = p.w[i] - p.inv_inertia[i] * (ai * n).cross(dr)
+    if j < p.count[None]:
         p.v[j] = p.v[j] + dr * p.inv_mass[j]
-        p.w[j] = p.w[j] + p.inv_inertia[j] * (-rj * n).cross(dr)
+        p.w[j] = p.w[j] + p.inv_inertia[j] * (-aj * n).cross(dr)
+
+
+@ti.func
+def bond_arms(p: ti.template(), bd: ti.template(), b):
+    """Lever arms (a_i, a_j) of bond b: it acts at the middle of the gap, a_i = r_i + g/2 from
+    i's centre along n and a_j = r_j + g/2 from j's against it (g the gap at the step's start,
+    bonds_prepare). Both grains' velocities are taken at that one point, so a rigid motion of
+    the pair gives no relative velocity whatever the gap (at the surfaces, r_i n and -r_j n,
+    two points g apart, a rigid spin w would give w x (g n))."""
+    hg = bd.half_gap[b]
+    return p.radius[bd.i[b]] + hg, p.radius[bd.j[b]] + hg
+
+
+@ti.func
+def apply_bond_impulse(p: ti.template(), bd: ti.template(), b, dr):
+    """Impulse dr on bond b's j, -dr on its i, at the middle of its gap (bond_arms)."""
+    ai, aj = bond_arms(p, bd, b)
+    apply_impulse_at(p, bd.i[b], bd.j[b], bd.normal[b], dr, ai, aj)
 
 
 @ti.func
 def relative_velocity(p: ti.template(), wl: ti.template(), i, j, n):
+    """A contact's relative velocity: j's at -r_j n less i's at r_i n."""
     rj = 0.0
     if j < p.count[None]:
         rj = p.radius[j]
-    return point_velocity(p, wl, j, -rj * n) - (p.v[i] + p.w[i].cross(p.radius[i] * n))
+    return relative_velocity_at(p, wl, i, j, n, p.radius[i], rj)
+
+
+@ti.func
+def relative_velocity_at(p: ti.template(), wl: ti.template(), i, j, n, ai, aj):
+    return point_velocity(p, wl, j, -aj * n) - (p.v[i] + p.w[i].cross(ai * n))
+
+
+@ti.func
+def bond_relative_velocity(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
+    """Bond b's relative velocity at the middle of its gap (bond_arms)."""
+    ai, aj = bond_arms(p, bd, b)
+    return relative_velocity_at(p, wl, bd.i[b], bd.j[b], bd.normal[b], ai, aj)
 
 
 @ti.func
@@ -176,11 +214,10 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
     dr = ti.Vector([0.0, 0.0, 0.0])
     r_new = ti.Vector([0.0, 0.0, 0.0])
     if bd.state[b] == INTACT:
-        i, j, n = bd.i[b], bd.j[b], bd.normal[b]
         r_old = bd.impulse[b]
         r_new, _, _ = bond_law(p, wl, bd, b, r_old)
         dr = r_new - r_old
-        apply_impulse(p, i, j, n, dr)
+        apply_bond_impulse(p, bd, b, dr)
         bd.impulse[b] = r_new
     return dr, r_new
 
@@ -190,14 +227,14 @@ def bond_law(p: ti.template(), wl: ti.template(), bd: ti.template(), b, r_old):
     """Intact bond b's local solve on its own at the current body velocities, from impulse
     r_old: (its new impulse, W_nn, W_tt of its Delassus diagonal)."""
     i, j, n = bd.i[b], bd.j[b], bd.normal[b]
-    u = relative_velocity(p, wl, i, j, n)
+    u = bond_relative_velocity(p, wl, bd, b)
     un = u.dot(n)
     ut = u - un * n
     rn_old = r_old.dot(n)
     rt_old = r_old - rn_old * n
-    ri, rj = p.radius[i], p.radius[j]
+    ai, aj = bond_arms(p, bd, b)
     wnn = p.inv_mass[i] + p.inv_mass[j]
-    wtt = wnn + ri * ri * p.inv_inertia[i] + rj * rj * p.inv_inertia[j]
+    wtt = wnn + ai * ai * p.inv_inertia[i] + aj * aj * p.inv_inertia[j]
     ufn = un - wnn * rn_old
     uft = ut - wtt * rt_old
     rn, rt = laws.bonded(ufn, uft, bd.rhs_n[b], bd.rhs_t[b], wnn, wtt, bd.cn[b], bd.ct[b])
@@ -382,6 +419,16 @@ def stiffness_apply(alpha, beta, n, x):
 
 
 @ti.func
+def bond_end_arms(p: ti.template(), bd: ti.template(), b, q):
+    """Bond b's lever arms (bond_arms) seen from its end q: (q's, its neighbour's)."""
+    ai, aj = bond_arms(p, bd, b)
+    aq, ao = aj, ai
+    if q == bd.i[b]:
+        aq, ao = ai, aj
+    return aq, ao
+
+
+@ti.func
 def bond_end(bd: ti.template(), b, q):
     """Bond b seen from its end q: sign s (+1 when q is its j), neighbour o, and the step's
     stiffness coefficients (alpha, beta) of K_b = (C_b + W_o)^-1."""
@@ -400,10 +447,10 @@ def bond_end(bd: ti.template(), b, q):
 def bond_residual(p: ti.template(), wl: ti.template(), bd: ti.template(), b, s):
     """Residual e = s (u + C R + rhs) of bond b seen from the end with sign s, at the current
     velocities and impulse."""
-    i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+    n = bd.normal[b]
     r_imp = bd.impulse[b]
     rn = r_imp.dot(n)
-    u = relative_velocity(p, wl, i, j, n)
+    u = bond_relative_velocity(p, wl, bd, b)
     res = u + bd.cn[b] * rn * n + bd.ct[b] * (r_imp - rn * n) + bd.rhs_n[b] * n + bd.rhs_t[b]
     return s * res
 
@@ -447,13 +494,13 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             i, j = bd.i[b], bd.j[b]
-            ri, rj = p.radius[i], p.radius[j]
+            ai, aj = bond_arms(p, bd, b)
             # seen from i the neighbour is j, and the other way round
             bd.stiff[b] = ti.Vector([
                 1.0 / (bd.cn[b] + p.inv_mass[j]),
-                1.0 / (bd.ct[b] + p.inv_mass[j] + rj * rj * p.inv_inertia[j]),
+                1.0 / (bd.ct[b] + p.inv_mass[j] + aj * aj * p.inv_inertia[j]),
                 1.0 / (bd.cn[b] + p.inv_mass[i]),
-                1.0 / (bd.ct[b] + p.inv_mass[i] + ri * ri * p.inv_inertia[i])])
+                1.0 / (bd.ct[b] + p.inv_mass[i] + ai * ai * p.inv_inertia[i])])
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for q in range(p.count[None]):
         rq = p.radius[q]
@@ -469,13 +516,15 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                 if q == bd.i[b]:
                     s = -1.0
                     o = bd.j[b]
-                ro = p.radius[o]
+                aq, ao = bond_end_arms(p, bd, b, q)
                 alpha = 1.0 / (bd.cn[b] + p.inv_mass[o])
-                beta = 1.0 / (bd.ct[b] + p.inv_mass[o] + ro * ro * p.inv_inertia[o])
+                beta = 1.0 / (bd.ct[b] + p.inv_mass[o] + ao * ao * p.inv_inertia[o])
                 kb = (alpha - beta) * n.outer_product(n)
                 for r in ti.static(range(3)):
                     kb[r, r] += beta
-                sk_ = skew(-s * n)
+                # the unit offset of q's contact point, in units of r_q (rotations are
+                # scaled by r_q): -s (a_q / r_q) n
+                sk_ = skew(-s * (aq / rq) * n)
                 ks = kb @ sk_
                 sks = sk_.transpose() @ ks
                 for r in ti.static(range(3)):
@@ -541,13 +590,14 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         if bd.state[b] == INTACT:
             count += 1
             s, _, alpha, beta = bond_end(bd, b, q)
+            aq, _ao = bond_end_arms(p, bd, b, q)
             n = bd.normal[b]
             e = bond_residual(p, wl, bd, b, s)
             bd.resid[b] = e
             ke = stiffness_apply(alpha, beta, n, e)
             # G_b^T K_b e_b: the force K e and its moment about q's centre, a x K e with the
-            # unit offset a = -s n
-            ske = -s * n.cross(ke)
+            # offset a = -s (a_q / r_q) n (rotations scaled by r_q)
+            ske = -s * (aq / rq) * n.cross(ke)
             for r in ti.static(range(3)):
                 g[r] -= ke[r]
                 g[3 + r] -= ske[r]
@@ -564,19 +614,21 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
             b = particle_bond(bd, q, k)
             if bd.state[b] == INTACT:
                 s, o, alpha, beta = bond_end(bd, b, q)
+                aq, ao = bond_end_arms(p, bd, b, q)
+                lam = aq / rq
                 n = bd.normal[b]
                 e = bd.resid[b]
-                # e + G_b xi = e + dv - a x dw with a = -s n
-                qb = -stiffness_apply(alpha, beta, n, e + dv + s * n.cross(dw))
+                # e + G_b xi = e + dv - a x dw with a = -s (a_q / r_q) n
+                qb = -stiffness_apply(alpha, beta, n, e + dv + (s * lam) * n.cross(dw))
                 bd.impulse[b] += s * qb
                 if ti.static(measure == 1):
                     dsum += qb.norm()
                     rsum += bd.impulse[b].norm()
                 sum_q += qb
-                sum_t -= s * n.cross(qb)
-                # the neighbour receives -Q_b at its contact point s r_o n
-                # (-r_j n when it is j, +r_i n when it is i)
-                ro = s * p.radius[o] * n
+                sum_t -= (s * lam) * n.cross(qb)
+                # the neighbour receives -Q_b at its contact point s a_o n
+                # (-a_j n when it is j, +a_i n when it is i)
+                ro = s * ao * n
                 p.v[o] = p.v[o] - qb * p.inv_mass[o]
                 p.w[o] = p.w[o] - p.inv_inertia[o] * ro.cross(qb)
         p.v[q] = p.v[q] + sum_q * p.inv_mass[q]
@@ -667,7 +719,7 @@ def bond_momentum(p: ti.template(), bd: ti.template(), b, beta, bodies: ti.templ
             dr = beta * pb
             bd.impulse[b] += dr
             if ti.static(bodies == 1):
-                apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], dr)
+                apply_bond_impulse(p, bd, b, dr)
         bd.acc_p[b] = beta * pb + bd.acc_d[b]
 
 
@@ -709,7 +761,7 @@ def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
     ti.loop_config(serialize=True)
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
-            apply_impulse(p, bd.i[b], bd.j[b], bd.normal[b], bd.impulse[b])
+            apply_bond_impulse(p, bd, b, bd.impulse[b])
     ti.loop_config(serialize=True)
     for k in range(ct.total[None]):
         apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
@@ -1650,9 +1702,9 @@ def warm_start_item(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: 
         if ti.static(blocks == 1):
             for e in range(bd.start[q], bd.start[q + 1]):
                 if bd.state[e] == INTACT:
-                    apply_impulse(p, bd.i[e], bd.j[e], bd.normal[e], bd.impulse[e])
+                    apply_bond_impulse(p, bd, e, bd.impulse[e])
         else:
-            apply_impulse(p, bd.i[q], bd.j[q], bd.normal[q], bd.impulse[q])
+            apply_bond_impulse(p, bd, q, bd.impulse[q])
     else:
         k = q - nb
         apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
@@ -1663,9 +1715,11 @@ def warm_start_item(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: 
 def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t_end: float,
                   mode: ti.i32, k_m: float, eta_m: float, k_k: float, eta_k: float,
                   tangent_factor: float, extrap: float):
-    """Current frame; tangential displacement and history carried into the new tangent plane
-    (projected, length kept); extra compliance 1/(theta H^2 K) and displacement terms; the
-    warm start R_n + extrap (R_n - R_n-1) (extrap 0: the last step's impulse)."""
+    """Current frame and lever arms (the middle of the gap, bond_arms); tangential
+    displacement and history carried into the new tangent plane (projected, length kept) and
+    turned with the pair's spin about the bond's axis over the last step; extra compliance
+    1/(theta H^2 K) and displacement terms; the warm start R_n + extrap (R_n - R_n-1)
+    (extrap 0: the last step's impulse)."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
@@ -1679,12 +1733,19 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             dist = d.norm()
             n = d / dist
             bd.normal[b] = n
-            u = (p.v_old[j] + p.w_old[j].cross(-rj * n)) - (p.v_old[i] + p.w_old[i].cross(ri * n))
+            hg = 0.5 * (dist - ri - rj)
+            bd.half_gap[b] = hg
+            ai, aj = ri + hg, rj + hg
+            u = (p.v_old[j] + p.w_old[j].cross(-aj * n)) - (p.v_old[i] + p.w_old[i].cross(ai * n))
             un = u.dot(n)
             ut = u - un * n
-            bd.d_t[b] = rotate_into_plane(bd.d_t[b], n)
-            bd.hd_t[b] = rotate_into_plane(bd.hd_t[b], n)
-            bd.hk_t[b] = rotate_into_plane(bd.hk_t[b], n)
+            # the pair's turn about its axis over the last step (its mean spin, at the step's
+            # start): the history turns with the bond (a rigid spin about the axis leaves its
+            # force fixed to the grains, not to space)
+            twist = h * 0.5 * (p.w_old[i] + p.w_old[j]).dot(n)
+            bd.d_t[b] = turn_about(rotate_into_plane(bd.d_t[b], n), n, twist)
+            bd.hd_t[b] = turn_about(rotate_into_plane(bd.hd_t[b], n), n, twist)
+            bd.hk_t[b] = turn_about(rotate_into_plane(bd.hk_t[b], n), n, twist)
             dn_beg = (dist - ri - rj - bd.g0[b]) + (1.0 - theta) * h * un
             dt_beg = bd.d_t[b] + (1.0 - theta) * h * ut
             bd.d_t_beg[b] = dt_beg
@@ -1703,6 +1764,12 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             bd.ct[b] = comp_t / (theta * h * h)
             bd.rhs_n[b] = (dn_beg - off_n) / (theta * h)
             bd.rhs_t[b] = (dt_beg - off_t) / (theta * h)
+
+
+@ti.func
+def turn_about(vec, n, angle):
+    """vec (perpendicular to the unit n) turned by `angle` (rad) about n."""
+    return ti.cos(angle) * vec + ti.sin(angle) * n.cross(vec)
 
 
 @ti.func
@@ -1725,7 +1792,7 @@ def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: floa
     for b in range(bd.total[None]):
         if bd.state[b] == INTACT:
             i, j, n = bd.i[b], bd.j[b], bd.normal[b]
-            u = relative_velocity(p, wl, i, j, n)
+            u = bond_relative_velocity(p, wl, bd, b)
             ut = u - u.dot(n) * n
             bd.d_t[b] = bd.d_t_beg[b] + theta * h * ut
             r = bd.impulse[b]

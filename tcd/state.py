@@ -323,7 +323,9 @@ class Bonds:
     d_t (tangential displacement, m, global vector in the tangent plane),
     Burgers history (normal: hd_n dashpot, hk_n Kelvin; tangential: hd_t, hk_t, m),
     broken_time (s, NaN while intact), broken_pos (m).
-    Per step: normal, rhs_n, rhs_t (displacement terms / (theta H)), cn, ct (extra compliance
+    Per step: normal, half_gap (half the gap at the step's start: the bond acts at the middle
+    of the gap, r_i + half_gap from i's centre and r_j + half_gap from j's, solver.bond_arms),
+    rhs_n, rhs_t (displacement terms / (theta H)), cn, ct (extra compliance
     1/(theta H^2 K)), d_t_beg; stiff and resid (the particle-block relaxation's);
     inverse: per particle, the inverse of its bond block (solver.bonds_factor, the 21 entries
     of its lower triangle), a single row in a set made without bonds (`blocks` False: an
@@ -335,10 +337,10 @@ class Bonds:
         self.inverse = ti.Vector.field(21, backend.real(), shape=particle_capacity if blocks else 1)
         # the particle-block relaxation's per-bond record (AoS), read whole at every visit
         (self.i, self.j, self.state, self.normal, self.impulse, self.cn, self.ct, self.rhs_n,
-         self.rhs_t, self.stiff, self.resid) = _struct(
+         self.rhs_t, self.stiff, self.resid, self.half_gap) = _struct(
             c, ti.field(ti.i32), ti.field(ti.i32), ti.field(ti.i32), _vec_row(), _vec_row(),
             _real_row(), _real_row(), _real_row(), _vec_row(),
-            ti.Vector.field(4, backend.real()), _vec_row())
+            ti.Vector.field(4, backend.real()), _vec_row(), _real_row())
         # stiff: per step, (alpha, beta) of K = (C + W_o)^-1 seen from i, then from j
         # (solver.bonds_factor); resid: per sweep, the bond's residual seen from the particle
         # being relaxed

@@ -661,3 +661,90 @@ def test_bond_state_counts_are_intact_tension_shear_in_that_order(backend):
     sim.load_state_dict(d)
     assert sim.bonds_state_counts() == (0, 1, 2)
 
+
+
+# --- session 45: a bond acts at the middle of its gap, and its history turns with its spin --------
+def spun_pair(gap, omega, h, **settings):
+    """Two 2 mm grains bonded across `gap` (m; negative: overlapping), spun rigidly at `omega`
+    (rad/s) about z through their centre of mass: each grain's v = w x x, its spin w."""
+    r = 0.002
+    x = np.array([[-(r + gap / 2), 0.0, 0.0], [r + gap / 2, 0.0, 0.0]])
+    sim = Simulation([r, r], x, settings=SolverSettings(time_step=h, tolerance=1e-12,
+                                                        max_sweeps=500, gravity=(0, 0, 0),
+                                                        **settings),
+                     domain=((-0.02,) * 3, (0.02,) * 3))
+    assert sim.create_bonds(max(gap, 0.0) + 1e-9) == 1
+    w = np.array([0.0, 0.0, omega])
+    sim.set_velocities(np.cross(w, x))
+    sim.set_angular_velocities(np.tile(w, (2, 1)))
+    return sim
+
+
+def pair_rate(sim):
+    """The pair's rate of turn about z: (d x (v_j - v_i)) / |d|^2."""
+    x, v = sim.positions(), sim.velocities()
+    d = x[1] - x[0]
+    return np.cross(d, v[1] - v[0])[2] / (d @ d)
+
+
+@pytest.mark.parametrize("schedule, blocks", [("serial", True), ("serial", False),
+                                              ("coloured", True)])
+@pytest.mark.parametrize("gap", [1e-4, -1e-4])
+def test_a_rigidly_spun_bonded_pair_turns_as_one_whatever_its_gap(gap, schedule, blocks,
+                                                                  precision):
+    """A rigid motion strains no bond: both grains' velocities are taken at one point, the
+    middle of the gap (solver.bond_arms). Taken at the two surfaces, r_i n and -r_j n, g apart,
+    a spin w gives them a relative velocity w x (g n): session 44's audit saw a pair bonded
+    across 1e-4 m end two turns at 10.0893 rad/s instead of 10. Here 500 steps (half a turn at
+    10 rad/s, H = 2e-4 s, one step's turn 2e-3 rad): the pair turns at the rate of the pair
+    bonded at contact, and its bond carries no tangential force (with the arms at the
+    surfaces, session 44's code: 9.930 rad/s for a gap of 1e-4 m and 10.073 for -1e-4 m,
+    against 9.99997 at contact)."""
+    h, omega = 2e-4, 10.0
+    sims = [spun_pair(g, omega, h, schedule=schedule, bond_blocks=blocks) for g in (gap, 0.0)]
+    for sim in sims:
+        sim.step(499)
+    x = sims[0].positions()           # the last step's bond frame: its start's line of centres
+    for sim in sims:
+        sim.step()
+    rate, rate_touching = pair_rate(sims[0]), pair_rate(sims[1])
+    bound = 1e-7 if precision == "f64" else 1e-4
+    assert abs(rate - rate_touching) <= bound * omega, (rate, rate_touching)
+    np.testing.assert_allclose(sims[0].angular_velocities()[:, 2], rate_touching,
+                               rtol=bound)
+    r = sims[0].state_dict()["bonds/impulse"][0]
+    n = (x[1] - x[0]) / np.linalg.norm(x[1] - x[0])
+    rn = r @ n
+    assert rn < 0.0        # the bond holds the pair together: tension
+    if precision == "f64":
+        # in f32 the bond's stretch under the centripetal pull (1e-11 m) is below the
+        # position quantum at 2 mm (2.4e-10 m): its force is rounding there
+        assert np.linalg.norm(r - rn * n) <= bound * abs(rn), (r, rn)
+
+
+@pytest.mark.parametrize("mode", ["paper", "burgers"])
+def test_a_bond_spun_about_its_axis_turns_its_tangential_history_with_it(mode, tol):
+    """A bond's tangential displacement and Burgers histories belong to the bond, so a spin of
+    the pair about its axis turns them (solver.bonds_prepare: by H (w_i + w_j) . n / 2 a step).
+    Both grains held in place on the x axis, spinning at 10 rad/s about it: the bond's
+    relative velocity is zero (its point is on the axis), and a displacement d along y turns
+    to d (0, cos a, sin a) after steps turning it by a (before session 45 it stayed along y)."""
+    h, d, omega, steps = 1e-3, 1e-6, 10.0, 100
+    sim = pair(0.004, 0.004, mode=mode, h=h)
+    put(sim.particles.inv_mass, [0.0, 0.0])
+    put(sim.particles.inv_inertia, [0.0, 0.0])
+    st = sim.state_dict()
+    st["bonds/d_t"][0] = [0.0, d, 0.0]
+    st["bonds/hd_t"][0] = [0.0, 0.1 * d, 0.0]
+    st["bonds/hk_t"][0] = [0.0, 0.2 * d, 0.0]
+    sim.load_state_dict(st)
+    sim.set_angular_velocities([[omega, 0.0, 0.0], [omega, 0.0, 0.0]])
+    sim.step(steps)
+    b = sim.state_dict()
+    a = omega * h * steps          # 1 rad
+    turned = np.array([0.0, math.cos(a), math.sin(a)])
+    np.testing.assert_allclose(b["bonds/d_t"][0], d * turned, rtol=0, atol=10 * d * tol)
+    if mode == "burgers":
+        hd = b["bonds/hd_t"][0]
+        assert abs(hd @ turned) >= 0.99 * np.linalg.norm(hd) > 0, hd
+    assert sim.bonds_intact_count() == 1

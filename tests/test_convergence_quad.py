@@ -44,9 +44,10 @@ def _oracle(sim):
     inv_i = sim.particles.inv_inertia.to_numpy()[:n]
     wall_v = sim.wall_fields.velocity.to_numpy()
 
-    def rel_vel(i, j, nrm):
-        vi = v[i] + np.cross(w[i], rad[i] * nrm)
-        vj = wall_v[j - n] if j >= n else v[j] + np.cross(w[j], -rad[j] * nrm)
+    def rel_vel(i, j, nrm, half_gap=0.0):
+        """At a contact's surfaces; at the middle of a bond's gap (half_gap past both)."""
+        vi = v[i] + np.cross(w[i], (rad[i] + half_gap) * nrm)
+        vj = wall_v[j - n] if j >= n else v[j] + np.cross(w[j], -(rad[j] + half_gap) * nrm)
         return vj - vi
 
     terms = []
@@ -69,14 +70,16 @@ def _oracle(sim):
     bd = sim.bonds
     nb = int(bd.total[None])
     bond = {name: getattr(bd, name).to_numpy()[:nb]
-            for name in ("i", "j", "state", "normal", "impulse", "rhs_n", "rhs_t", "cn", "ct")}
+            for name in ("i", "j", "state", "normal", "impulse", "rhs_n", "rhs_t", "cn", "ct",
+                         "half_gap")}
     for b in range(nb):
         if bond["state"][b] != 0:
             continue
         i, j, nrm, r_old = int(bond["i"][b]), int(bond["j"][b]), bond["normal"][b], bond["impulse"][b]
+        hg = bond["half_gap"][b]
         wnn = inv_m[i] + inv_m[j]
-        wtt = wnn + rad[i] ** 2 * inv_i[i] + rad[j] ** 2 * inv_i[j]
-        ufn, uft = free(rel_vel(i, j, nrm), r_old, nrm, wnn, wtt)
+        wtt = wnn + (rad[i] + hg) ** 2 * inv_i[i] + (rad[j] + hg) ** 2 * inv_i[j]
+        ufn, uft = free(rel_vel(i, j, nrm, hg), r_old, nrm, wnn, wtt)
         rn, rt = laws.bonded_np(ufn, uft, bond["rhs_n"][b], bond["rhs_t"][b], wnn, wtt,
                                 bond["cn"][b], bond["ct"][b])
         add(r_old, rn * nrm + rt, nrm, wnn, wtt)

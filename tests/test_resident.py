@@ -161,18 +161,21 @@ def test_velocities_are_the_free_ones_plus_the_impulses(backend, tol, monkeypatc
         sim.step()
         dv, dw = np.zeros((n, 3)), np.zeros((n, 3))
 
-        def receive(i, j, normal, impulse):      # solver.apply_impulse
+        def receive(i, j, normal, impulse, half_gap=0.0):     # solver.apply_impulse_at
+            # at a contact's surfaces; at the middle of a bond's gap (solver.bond_arms)
             np.add.at(dv, i, -impulse)
-            np.add.at(dw, i, -np.cross(r[i, None] * normal, impulse))
+            np.add.at(dw, i, -np.cross((r[i] + half_gap)[:, None] * normal, impulse))
             pp = j < n
+            hj = half_gap[pp] if np.ndim(half_gap) else half_gap
             np.add.at(dv, j[pp], impulse[pp])
-            np.add.at(dw, j[pp], np.cross(-r[j[pp], None] * normal[pp], impulse[pp]))
+            np.add.at(dw, j[pp], np.cross(-(r[j[pp]] + hj)[:, None] * normal[pp], impulse[pp]))
         c = sim.contact_arrays()
         receive(c["i"], c["j"], c["normal"], c["impulse"])
         bn = x0[bj] - x0[bi]
-        bn /= np.linalg.norm(bn, axis=1)[:, None]
+        dist = np.linalg.norm(bn, axis=1)
+        bn /= dist[:, None]
         rb = sim.state_dict()["bonds/impulse"][intact]
-        receive(bi, bj, bn, rb)
+        receive(bi, bj, bn, rb, 0.5 * (dist - r[bi] - r[bj]))
         bonded += np.count_nonzero(np.abs(rb).sum(axis=1) > 0)
         scale = max(np.abs(v0).max(), np.abs(dv / m[:, None]).max())
         np.testing.assert_allclose(sim.velocities(), v0 + h * g + dv / m[:, None],
