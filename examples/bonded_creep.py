@@ -11,8 +11,8 @@ viscous flow. The script steps the pair with Contact Dynamics and prints the ope
 F J(t). The force stays far below the bond's yield force (sigma_y pi r^2).
 
 The pair lies exactly along x. Off an axis, the time step of 5e-3 s is too large for a grain
-free to roll about its one loaded bond (F H^2 / (m L) = 8.9 here, unstable above about 5:
-docs/physics.md, "Known limitations"); pass a time step of 2e-3 s or less to `run` then.
+free to roll about its one loaded bond (F H^2 / (m L) = 8.9 here, unstable above 5.6:
+docs/physics.md, "Limitations found by the physics audit"); pass a time step of 2e-3 s or less to `run` then.
 
     python examples/bonded_creep.py [--force 2] [--time 30] [--mode burgers|paper] [--arch cpu|gpu]
 """

@@ -503,8 +503,8 @@ class Shear:
                 f"the grains' kinetic energy reached {ratio:.3g} of the walls' work (a "
                 f"quasi-static shear stays below {QUASI_STATIC_KINETIC_RATIO:g}): the drive is "
                 "fast for this sample, the sample had not settled, or grains were flung (a "
-                "bonded grain free to roll needs F H^2 / (m L) below about 5: docs/physics.md, "
-                "known limitations)"]
+                "bonded grain free to roll needs F H^2 / (m L) below 5.6: docs/physics.md, "
+                "limitations)"]
         if x_start is not None:
             travel = self.velocity * (sim.time - phase.info["t0"])
             z0 = x_start[:, 2]
