@@ -206,3 +206,17 @@ def test_pour_divides_the_loop_time_by_particles_times_timed_steps(monkeypatch):
     assert out["memory_bytes_per_particle"] == pytest.approx(8000 / n)
     assert out["loop_wall_s"] == 4.0 and out["compile_wall_s"] == 1.0
 
+
+
+@pytest.mark.f64_only   # a limit of the time scheme, not of the precision
+def test_a_loaded_bond_rolls_stably_below_the_explicit_frame_s_limit(benchmark_script, backend):
+    """benchmarks/bond_rolling_stability.py: a grain pulled along its one bond, free to roll
+    about its fixed partner, is an explicit pendulum (the bond's frame is the step's start),
+    stable below F H^2 / (m L) = 4 x 7/5 = 5.6 (docs/physics.md, "Limitations"): at 5.51 it
+    stays on the axis, at 5.69 it leaves it. A mend of the limitation (the frame at the
+    step's theta point) would keep both on the axis and must change this test."""
+    script = benchmark_script("bond_rolling_stability")
+    stable, unstable = script.run(3.0, 2e-4, 200), script.run(3.1, 2e-4, 200)
+    assert 5.5 < stable["stability_number"] < 5.6 < unstable["stability_number"] < 5.7
+    assert stable["off_axis_m"] < 1e-12 and stable["bonds"] == (1, 0, 0)
+    assert unstable["off_axis_m"] > 1e-5
