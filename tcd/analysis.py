@@ -104,13 +104,16 @@ def grain_stress(frame, h: float) -> np.ndarray:
     return s / (h * float(np.sum(4.0 / 3.0 * math.pi * r**3)))
 
 
-def fabric(frame) -> np.ndarray:
+def fabric(frame, pairs=None) -> np.ndarray:
     """(1 / M) sum n (x) n over the M particle pairs listed as contacts (within the alert
     distance: touching or nearly) or bonded, each pair once (3x3, trace 1; zeros when there
-    is none)."""
+    is none). `pairs`: the frame's (_unbonded_contacts, intact bonds) when the caller has
+    them."""
     x = np.asarray(frame["particles/x"], dtype=float)
+    if pairs is None:
+        pairs = (_unbonded_contacts(frame), _pairs(frame, "bonds"))
     branches = []
-    for i, j, _ in (_unbonded_contacts(frame), _pairs(frame, "bonds")):
+    for i, j, _ in pairs:
         branches.append(x[j] - x[i])
     b = np.concatenate(branches)
     length = np.linalg.norm(b, axis=1)
@@ -123,8 +126,9 @@ def fabric(frame) -> np.ndarray:
 def frame_row(frame, h: float | None) -> dict:
     x = np.asarray(frame["particles/x"], dtype=float)
     n = len(x)
-    ci, cj, cimp = _unbonded_contacts(frame)
-    bi, _, _ = _pairs(frame, "bonds")
+    contacts, bonds = _unbonded_contacts(frame), _pairs(frame, "bonds")
+    ci, cj, cimp = contacts
+    bi = bonds[0]
     state = np.asarray(frame.get("bonds/state", np.zeros(0, np.int8)))
     wall_contacts = int(np.count_nonzero(np.asarray(frame.get("contacts/j", [])) >= n))
     row = {"time": float(frame["time"]), "step": int(frame["step"]), "particles": n,
@@ -145,7 +149,7 @@ def frame_row(frame, h: float | None) -> dict:
         s = 0.5 * (s + s.T)
         for name, a, b in COMPONENTS:
             row[f"stress_{name}"] = float(s[a, b])
-    f = fabric(frame)
+    f = fabric(frame, (contacts, bonds))
     for name, a, b in COMPONENTS:
         row[f"fabric_{name}"] = float(f[a, b])
     eig = np.linalg.eigvalsh(f)

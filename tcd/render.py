@@ -1250,8 +1250,9 @@ def render_file(path, out, *, frame=-1, frames=None, color="layer", section=None
     indices = _frame_list(path, "all" if frames is None else frames)
     if not indices:
         raise ValueError(f"{path}: no frames to animate")
+    scaled = color != "layer"     # a colour scale (and its bar's strip), not the layers' legend
     value_range = None
-    if color != "layer":     # one colour scale over the whole animation
+    if scaled:     # one colour scale over the whole animation
         values = [particle_values(load_frame(path, k), color) for k in indices]
         value_range = default_range(color, np.concatenate(values))
     if camera in CAMERA_PRESETS:     # one camera over the whole animation: frame the first one
@@ -1262,7 +1263,7 @@ def render_file(path, out, *, frame=-1, frames=None, color="layer", section=None
         # whole width cut the grains off at the colour bar's strip, and zoomed 13 % closer
         # than the same frame rendered alone: session 44's audit)
         camera = _resolve_camera(camera, first["x"], first["radius"],
-                                 render_area_width(width, color != "layer"), height, plane)
+                                 render_area_width(width, scaled), height, plane)
     with atomic_output(out) as tmp:
         if out.suffix.lower() == ".gif":
             import imageio.v3 as iio
