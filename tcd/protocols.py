@@ -105,8 +105,8 @@ def settled(sim, speed: float) -> bool:
 #: the largest overlap a prepared sample may keep, over its smallest diameter (issue 5: 1 %)
 MAX_SAMPLE_OVERLAP = 0.01
 
-#: the largest kinetic energy of a quasi-static shear, over the walls' work (the study's: 4.8e-5
-#: to 2.9e-4; the twin's below 1e-3): above it the summary warns of flung grains
+#: the largest kinetic energy of a quasi-static shear, over the walls' work (the study's: 6.3e-5
+#: to 1.7e-4; the twin's below 1e-3): above it the summary warns of flung grains
 QUASI_STATIC_KINETIC_RATIO = 0.01
 
 
