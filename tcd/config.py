@@ -73,6 +73,13 @@ class _Problems(ValueError):
         super().__init__("; ".join(f"{k}: {r}" for k, r in self.problems))
 
 
+#: why bond_frame = "end" is refused in single precision (tcd.simulation checks it too)
+BOND_FRAME_F32 = ("\"end\" needs f64: in f32 the particle blocks of a grain bonded to a fixed "
+                  "one (condition number about 1e5) are solved too coarsely, and with the "
+                  "frame's turn the sweeps diverge; use precision = \"f64\", or "
+                  "bond_frame = \"start\"")
+
+
 def _raise_if(problems) -> None:
     if problems:
         raise _Problems(problems)
@@ -120,6 +127,9 @@ class SolverConfig(_Model):
     position projection leaves contacts alone; projection_passes: its sweeps (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
     (true, the default; false: bond by bond, which stalls on the bonds of light grains);
+    bond_frame: "start" (a bond's normal force along the line of centres of the step's start,
+    the default) or "end" (turned with it over the step: stable for a grain rolling about a
+    loaded bond at any time step; needs acceleration = "none");
     neighbour_skin: skin of the broad phase's neighbour list / smallest radius (cost only:
     the contacts are the same for any skin; fast grains get room for about two steps of
     their reach); colouring (coloured schedule): "greedy" (serial, fewest colours), "rounds"
@@ -141,6 +151,7 @@ class SolverConfig(_Model):
     overlap_slop: float = Field(0.002, ge=0)
     projection_passes: int = Field(2, ge=0, le=10**6)
     bond_blocks: bool = True
+    bond_frame: Literal["start", "end"] = "start"
     neighbour_skin: float = Field(2.0, ge=0)
     colouring: Literal["auto", "greedy", "rounds"] = "auto"
 
@@ -151,6 +162,10 @@ class SolverConfig(_Model):
             problems.append(("check_every", f"must not exceed max_sweeps ({self.max_sweeps}), "
                                             f"got {self.check_every}: convergence would never "
                                             "be checked"))
+        if self.bond_frame == "end" and self.acceleration != "none":
+            problems.append(("bond_frame", "\"end\" needs acceleration = \"none\" (the "
+                                           "conjugate-gradient momentum does not move the "
+                                           "bonds' turns, and with it the sweeps diverge)"))
         if self.schedule == "resident" and self.convergence == "quad":
             # (the simulation refuses it too; here, before a run writes anything)
             problems.append(("convergence", "\"quad\" is not measured by the resident schedule "
@@ -172,7 +187,7 @@ class SolverConfig(_Model):
                               alert_ratio=self.alert_ratio,
                               gravity=(0.0, 0.0, -self.gravity), overlap_slop=self.overlap_slop,
                               projection_passes=self.projection_passes,
-                              bond_blocks=self.bond_blocks,
+                              bond_blocks=self.bond_blocks, bond_frame=self.bond_frame,
                               neighbour_skin=self.neighbour_skin, colouring=self.colouring)
 
 
@@ -485,6 +500,8 @@ class Scenario(_Model):
                                  f"a second {kind} stage: a scenario has at most one prepare "
                                  "stage and one shear stage (a second one would overwrite the "
                                  f"first one's {kind}_series and mix their samples)"))
+        if self.backend.precision == "f32" and self.solver.bond_frame == "end":
+            problems.append(("solver.bond_frame", BOND_FRAME_F32))
         if "prepare" in kinds and "shear" in kinds and kinds.index("prepare") > kinds.index("shear"):
             problems.append((f"stage[{kinds.index('prepare') + 1}].kind",
                              "a prepare stage after the shear stage: prepare the sample first"))
@@ -536,6 +553,9 @@ class Scenario(_Model):
             return self
         backend = _validate(BackendConfig, {**self.backend.model_dump(), **update},
                             f"{self.source} (command-line override)", prefix="backend")
+        if backend.precision == "f32" and self.solver.bond_frame == "end":
+            raise ScenarioError(f"{self.source} (command-line override)",
+                                [("solver.bond_frame", BOND_FRAME_F32)])
         return self.model_copy(update={"backend": backend})
 
 

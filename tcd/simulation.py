@@ -29,6 +29,7 @@ SCHEDULES = ("auto", "serial", "partitioned", "coloured", "resident")
 COLOURED = ("coloured", "resident")     # the schedules that colour their items
 ACCELERATIONS = ("nncg", "none")
 SWEEP_ORDERS = ("forward", "symmetric")
+BOND_FRAMES = ("start", "end")
 CONVERGENCE_MEASURES = ("impulse", "quad")
 COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
@@ -145,6 +146,13 @@ class CapacityError(RuntimeError):
     """A buffer could not hold what the step needs and could not grow."""
 
 
+def _check_on_backend(settings) -> None:
+    """Settings the backend cannot run: bond_frame = "end" in f32."""
+    if settings.bond_frame == "end" and backend.precision() == "f32":
+        from .config import BOND_FRAME_F32
+        raise ValueError(f"bond_frame: {BOND_FRAME_F32}")
+
+
 @dataclasses.dataclass(frozen=True)
 class SolverSettings:
     """time_step H (s); theta of the Moreau-Jean scheme in [0.5, 1]; tolerance on the
@@ -177,6 +185,11 @@ class SolverSettings:
     end-of-step position projection; projection_passes: its sweeps per step (0: off);
     bond_blocks: relax the bonds particle by particle, each particle's bonds solved exactly
     (both schedules; False: bond by bond, which converges badly on light grains);
+    bond_frame: "start" (a bond's normal force acts along the line of centres of the step's
+    start: the default, and the setting of every shipped result) or "end" (turned with the
+    line of centres over the step, implicitly in the velocities: solver.solve_bond_turn; a
+    grain rolling about one loaded bond is then stable at any time step, where "start" needs
+    F H^2 / (m L) below 5.6: docs/physics.md, "Limitations"; needs acceleration = "none");
     neighbour_skin: skin of the broad phase's neighbour list as a fraction of the smallest
     radius (contacts are picked from the list every step, the grid is only walked when a
     particle may have moved more than its margin, half the skin or three steps of its reach
@@ -200,6 +213,7 @@ class SolverSettings:
     overlap_slop: float = 0.002
     projection_passes: int = 2
     bond_blocks: bool = True
+    bond_frame: str = "start"
     neighbour_skin: float = 2.0
     colouring: str = "auto"
 
@@ -233,6 +247,14 @@ class SolverSettings:
         if self.acceleration not in ACCELERATIONS:
             raise ValueError(f"acceleration must be one of {ACCELERATIONS}, got "
                              f"{self.acceleration!r}")
+        if self.bond_frame not in BOND_FRAMES:
+            raise ValueError(f"bond_frame must be one of {BOND_FRAMES}, got {self.bond_frame!r}")
+        if self.bond_frame == "end" and self.acceleration != "none":
+            # the momentum moves the bonds' impulses but not their turns, and the sweeps
+            # diverge (seen in f32, where rounding starts them: session 45)
+            raise ValueError(f"bond_frame = \"end\" needs acceleration = \"none\" (got "
+                             f"{self.acceleration!r}): the conjugate-gradient momentum does not "
+                             "move the bonds' turns, and with it the sweeps diverge")
         if self.sweep_order not in SWEEP_ORDERS:
             raise ValueError(f"sweep_order must be one of {SWEEP_ORDERS}, got "
                              f"{self.sweep_order!r}")
@@ -364,6 +386,7 @@ class Simulation:
         _finite("time", time)
         if not isinstance(settings, SolverSettings):
             raise TypeError(f"settings must be a SolverSettings, got {type(settings).__name__}")
+        _check_on_backend(settings)
         if not isinstance(bond_law, BondLaw):
             raise TypeError(f"bond_law must be a BondLaw, got {type(bond_law).__name__}")
         if layer is not None:
@@ -587,6 +610,7 @@ class Simulation:
         if fixed:
             raise ValueError(f"settings {', '.join(fixed)}: fixed when the simulation was built; "
                              "build a new Simulation with them (from sim.state_dict())")
+        _check_on_backend(new)
         self._settings = new
 
     def set_walls(self, walls: Sequence[Wall]) -> None:
@@ -698,6 +722,8 @@ class Simulation:
         sk.predict(p, h, *s.gravity)
         extrap = s.warm_start_extrapolation
         if bd.total[None] > 0:
+            # (written every step, not read back: a read would sync a GPU)
+            bd.frame_th[None] = theta * h if s.bond_frame == "end" else 0.0
             sk.bonds_prepare(p, bd, h, theta, self.time + h, *self._bond_law_args(), extrap)
             if s.bond_blocks:
                 sk.bonds_factor(p, bd)

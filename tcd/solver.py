@@ -204,6 +204,38 @@ def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, 
 
 
 @ti.func
+def solve_bond_turn(p: ti.template(), bd: ti.template(), b):
+    """The turn of intact bond b's frame over the step, when on (bd.frame_th > 0: the
+    `bond_frame = "end"` setting). The bond's normal force R_n acts along its frame of the
+    step's start, n; at the end of the step it acts along the new line of centres,
+    n + theta H P (v_j - v_i) / L to first order (P = I - n n^T, L the distance of the centres).
+    The difference, a central impulse G = R_n theta H P (v_j - v_i) / L, is solved here against
+    the current velocities (a damper between the centres, implicit in them): frozen at the
+    step's start, the frame makes a grain rolling about one loaded bond an explicit pendulum,
+    unstable above F H^2 / (m L) = 5.6 (docs/physics.md, "Limitations"). Only in tension
+    (R_n < 0): under compression the turn pushes the grain further (an inverted pendulum), which
+    an implicit term would not capture better. Its coefficient kappa = -R_n theta H / L is set
+    per step from the warm start's R_n (bonds_prepare; the sweeps' own R_n would couple the two
+    unsymmetrically). The bond-by-bond relaxation solves it after its bond; the particle
+    blocks solve it inside the block (solve_particle_bonds: a damper of stiffness
+    kappa / (1 + kappa m_o^-1) P on q's translation). The conjugate-gradient momentum does
+    not move it, and is refused with it (SolverSettings)."""
+    kappa = bd.turn_k[b]
+    if kappa > 0.0 and bd.state[b] == INTACT:
+        i, j, n = bd.i[b], bd.j[b], bd.normal[b]
+        g_old = bd.turn[b]
+        w = p.inv_mass[i] + p.inv_mass[j]
+        # the relative velocity of the centres without this impulse, in the tangent plane
+        other = (p.v[j] - p.v[i]) - w * g_old
+        other = other - other.dot(n) * n
+        g_new = -(kappa / (1.0 + kappa * w)) * other
+        dg = g_new - g_old
+        p.v[i] = p.v[i] - dg * p.inv_mass[i]
+        p.v[j] = p.v[j] + dg * p.inv_mass[j]
+        bd.turn[b] = g_new
+
+
+@ti.func
 def solve_bond(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
     dr, r_new = solve_bond_dr(p, wl, bd, b)
     return dr.norm(), r_new.norm()
@@ -219,6 +251,7 @@ def solve_bond_dr(p: ti.template(), wl: ti.template(), bd: ti.template(), b):
         dr = r_new - r_old
         apply_bond_impulse(p, bd, b, dr)
         bd.impulse[b] = r_new
+        solve_bond_turn(p, bd, b)
     return dr, r_new
 
 
@@ -533,6 +566,13 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                         a[r, 3 + c] -= ks[r, c]
                         a[3 + c, r] -= ks[r, c]
                         a[3 + r, 3 + c] += sks[r, c]
+                # the frame's turn (solve_bond_turn) between the centres, on translation only
+                kd = bd.turn_k[b]
+                if kd > 0.0:
+                    bdd = kd / (1.0 + kd * p.inv_mass[o])
+                    for r in ti.static(range(3)):
+                        for c in ti.static(range(3)):
+                            a[r, c] += bdd * ((1.0 if ti.static(r == c) else 0.0) - n[r] * n[c])
         if count > 0:
             if p.inv_mass[q] > 0.0:
                 for r in ti.static(range(3)):
@@ -589,7 +629,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         b = particle_bond(bd, q, k)
         if bd.state[b] == INTACT:
             count += 1
-            s, _, alpha, beta = bond_end(bd, b, q)
+            s, o, alpha, beta = bond_end(bd, b, q)
             aq, _ao = bond_end_arms(p, bd, b, q)
             n = bd.normal[b]
             e = bond_residual(p, wl, bd, b, s)
@@ -601,6 +641,11 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
             for r in ti.static(range(3)):
                 g[r] -= ke[r]
                 g[3 + r] -= ske[r]
+            kd = bd.turn_k[b]
+            if kd > 0.0:
+                kde = (kd / (1.0 + kd * p.inv_mass[o])) * turn_residual(p, bd, b, q, o, s, kd)
+                for r in ti.static(range(3)):
+                    g[r] -= kde[r]
     if count > 0:
         for r in ti.static(range(6)):
             if held_unknown(p, q, r) == 1:
@@ -620,6 +665,14 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
                 e = bd.resid[b]
                 # e + G_b xi = e + dv - a x dw with a = -s (a_q / r_q) n
                 qb = -stiffness_apply(alpha, beta, n, e + dv + (s * lam) * n.cross(dw))
+                kd = bd.turn_k[b]
+                if kd > 0.0:
+                    # the turn's impulse received by q (its residual read before o moves)
+                    ed = turn_residual(p, bd, b, q, o, s, kd)
+                    qd = -(kd / (1.0 + kd * p.inv_mass[o])) * (ed + (dv - dv.dot(n) * n))
+                    bd.turn[b] += s * qd
+                    sum_q += qd
+                    p.v[o] = p.v[o] - qd * p.inv_mass[o]
                 bd.impulse[b] += s * qb
                 if ti.static(measure == 1):
                     dsum += qb.norm()
@@ -634,6 +687,15 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
         p.v[q] = p.v[q] + sum_q * p.inv_mass[q]
         p.w[q] = p.w[q] + (p.inv_inertia[q] * rq) * sum_t
     return dsum, rsum
+
+
+@ti.func
+def turn_residual(p: ti.template(), bd: ti.template(), b, q, o, s, kd):
+    """Bond b's turn (solve_bond_turn, coefficient kd) seen from its end q (sign s, neighbour
+    o): P (v_q - v_o) + s G / kd, zero when G = -kd P (v_j - v_i)."""
+    n = bd.normal[b]
+    d = p.v[q] - p.v[o]
+    return (d - d.dot(n) * n) + (s / kd) * bd.turn[b]
 
 
 # --- pieces of a sweep shared by the serial and partitioned schedules ---------------------------
@@ -1733,6 +1795,13 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             dist = d.norm()
             n = d / dist
             bd.normal[b] = n
+            bd.turn[b] = ti.Vector([0.0, 0.0, 0.0])
+            # the frame's turn (solve_bond_turn), from the warm start's normal impulse
+            rn_warm = bd.impulse[b].dot(n)
+            kappa = 0.0
+            if rn_warm < 0.0:
+                kappa = -rn_warm * bd.frame_th[None] / dist
+            bd.turn_k[b] = kappa
             hg = 0.5 * (dist - ri - rj)
             bd.half_gap[b] = hg
             ai, aj = ri + hg, rj + hg

@@ -349,6 +349,11 @@ class Bonds:
         self.hd_n, self.hk_n = _real(c), _real(c)
         self.broken_time, self.broken_pos = _real(c), _vec(c)
         self.d_t_beg = _vec(c)
+        # the frame's turn over the step (SolverSettings.bond_frame = "end"): per bond, the
+        # central tangential impulse that turns its normal force with the line of centres
+        # (solver.solve_bond_turn); frame_th: theta H while it is on, 0 when it is off
+        self.turn, self.turn_k = _vec(c), _real(c)
+        self.frame_th = _scalar(backend.real())
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         # the impulse of the step before the last (the extrapolated warm start)
         self.impulse_prev = _vec(c)
@@ -363,6 +368,7 @@ class Bonds:
     def reset(self):
         self.total[None] = 0
         self.broken[None] = 0
+        self.frame_th[None] = 0.0
         self.start.fill(0)
         self.rev_start.fill(0)
 
