@@ -213,10 +213,13 @@ def test_a_loaded_bond_rolls_stably_below_the_explicit_frame_s_limit(benchmark_s
     """benchmarks/bond_rolling_stability.py: a grain pulled along its one bond, free to roll
     about its fixed partner, is an explicit pendulum (the bond's frame is the step's start),
     stable below F H^2 / (m L) = 4 x 7/5 = 5.6 (docs/physics.md, "Limitations"): at 5.51 it
-    stays on the axis, at 5.69 it leaves it. A mend of the limitation (the frame at the
-    step's theta point) would keep both on the axis and must change this test."""
+    stays on the axis, at 5.69 it leaves it. With bond_frame = "end" it stays on the axis at
+    5.69 and at 14.7 (8 N, where the default breaks the bond)."""
     script = benchmark_script("bond_rolling_stability")
     stable, unstable = script.run(3.0, 2e-4, 200), script.run(3.1, 2e-4, 200)
     assert 5.5 < stable["stability_number"] < 5.6 < unstable["stability_number"] < 5.7
     assert stable["off_axis_m"] < 1e-12 and stable["bonds"] == (1, 0, 0)
     assert unstable["off_axis_m"] > 1e-5
+    for force in (3.1, 8.0):
+        turned = script.run(force, 2e-4, 200, bond_frame="end")
+        assert turned["off_axis_m"] < 1e-12 and turned["bonds"] == (1, 0, 0), turned
