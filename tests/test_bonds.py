@@ -127,6 +127,20 @@ def test_relaxation_under_held_displacement(mode, precision):
         np.testing.assert_allclose(forces, delta0 / J(times), rtol=rtol)
 
 
+def held_pair_with_history(mode, h, d):
+    """Two touching 8 mm grains along x, bonded and both held (no mass or inertia to move),
+    the bond's tangential displacement d along y (its Burgers histories 0.1 d and 0.2 d)."""
+    sim = pair(0.004, 0.004, mode=mode, h=h)
+    put(sim.particles.inv_mass, [0.0, 0.0])
+    put(sim.particles.inv_inertia, [0.0, 0.0])
+    st = sim.state_dict()
+    st["bonds/d_t"][0] = [0.0, d, 0.0]
+    st["bonds/hd_t"][0] = [0.0, 0.1 * d, 0.0]
+    st["bonds/hk_t"][0] = [0.0, 0.2 * d, 0.0]
+    sim.load_state_dict(st)
+    return sim
+
+
 @pytest.mark.parametrize("mode", ["paper", "burgers"])
 def test_a_turned_bond_carries_its_tangential_history_into_the_new_tangent_plane(mode, tol):
     """PHYSICS.md section 4: when a bond's normal turns, its tangential displacement (and the
@@ -137,14 +151,7 @@ def test_a_turned_bond_carries_its_tangential_history_into_the_new_tangent_plane
     length gives 0.866 d), and the paper's law answers with a tangential impulse
     -H d_t / (2 (1 + nu) J(H)) on j (its bodies held: no velocity to add)."""
     h, d = 1e-3, 1e-6
-    sim = pair(0.004, 0.004, mode=mode, h=h)
-    put(sim.particles.inv_mass, [0.0, 0.0])
-    put(sim.particles.inv_inertia, [0.0, 0.0])
-    st = sim.state_dict()
-    st["bonds/d_t"][0] = [0.0, d, 0.0]
-    st["bonds/hd_t"][0] = [0.0, 0.1 * d, 0.0]
-    st["bonds/hk_t"][0] = [0.0, 0.2 * d, 0.0]
-    sim.load_state_dict(st)
+    sim = held_pair_with_history(mode, h, d)
     a = math.radians(30)
     x = sim.positions()
     x[1] = 0.008 * np.array([math.cos(a), math.sin(a), 0.0])
@@ -732,14 +739,7 @@ def test_a_bond_spun_about_its_axis_turns_its_tangential_history_with_it(mode, t
     relative velocity is zero (its point is on the axis), and a displacement d along y turns
     to d (0, cos a, sin a) after steps turning it by a (before session 45 it stayed along y)."""
     h, d, omega, steps = 1e-3, 1e-6, 10.0, 100
-    sim = pair(0.004, 0.004, mode=mode, h=h)
-    put(sim.particles.inv_mass, [0.0, 0.0])
-    put(sim.particles.inv_inertia, [0.0, 0.0])
-    st = sim.state_dict()
-    st["bonds/d_t"][0] = [0.0, d, 0.0]
-    st["bonds/hd_t"][0] = [0.0, 0.1 * d, 0.0]
-    st["bonds/hk_t"][0] = [0.0, 0.2 * d, 0.0]
-    sim.load_state_dict(st)
+    sim = held_pair_with_history(mode, h, d)
     sim.set_angular_velocities([[omega, 0.0, 0.0], [omega, 0.0, 0.0]])
     sim.step(steps)
     b = sim.state_dict()
