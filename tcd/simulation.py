@@ -586,8 +586,9 @@ class Simulation:
         span = 2.0 * (radius + 0.5 * self.alert + self._half_skin) / self.cell_size + 1.0
         return int(np.sum(span ** 3) * 1.15) + 64
 
-    # settings the simulation is built with (its schedule's data, its contacts' alert distance)
-    BUILT_WITH = ("schedule", "alert_ratio")
+    # settings the simulation is built with (its schedule's data, its contacts' alert distance,
+    # its bonds' turn fields)
+    BUILT_WITH = ("schedule", "alert_ratio", "bond_frame")
 
     @property
     def walls(self) -> WallList:
@@ -1037,7 +1038,8 @@ class Simulation:
         slots, below state.MIN_SLOTS (one class for every size already, and a 2600-sphere
         pour would otherwise hold 150 B per particle more)."""
         return acquire(Bonds, max(b, 1), self.particles.capacity,
-                       b > 0 and self.settings.bond_blocks, minimum=None if b else 64)
+                       b > 0 and self.settings.bond_blocks,
+                       b > 0 and self.settings.bond_frame == "end", minimum=None if b else 64)
 
     def _set_bond_arrays(self, a: dict) -> None:
         """Install a bond set given as arrays (missing state arrays take their defaults)."""

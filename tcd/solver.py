@@ -220,7 +220,7 @@ def solve_bond_turn(p: ti.template(), bd: ti.template(), b):
     blocks solve it inside the block (solve_particle_bonds: a damper of stiffness
     kappa / (1 + kappa m_o^-1) P on q's translation). The conjugate-gradient momentum does
     not move it, and is refused with it (SolverSettings)."""
-    kappa = bd.turn_k[b]
+    kappa = turn_coefficient(bd, b)
     if kappa > 0.0 and bd.state[b] == INTACT:
         i, j, n = bd.i[b], bd.j[b], bd.normal[b]
         g_old = bd.turn[b]
@@ -233,6 +233,16 @@ def solve_bond_turn(p: ti.template(), bd: ti.template(), b):
         p.v[i] = p.v[i] - dg * p.inv_mass[i]
         p.v[j] = p.v[j] + dg * p.inv_mass[j]
         bd.turn[b] = g_new
+
+
+@ti.func
+def turn_coefficient(bd: ti.template(), b):
+    """Bond b's turn coefficient kappa (solve_bond_turn); 0 when the turn is off, whose
+    fields then hold one slot (Bonds: `turn`)."""
+    kappa = 0.0
+    if bd.frame_th[None] > 0.0:
+        kappa = bd.turn_k[b]
+    return kappa
 
 
 @ti.func
@@ -567,7 +577,7 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                         a[3 + c, r] -= ks[r, c]
                         a[3 + r, 3 + c] += sks[r, c]
                 # the frame's turn (solve_bond_turn) between the centres, on translation only
-                kd = bd.turn_k[b]
+                kd = turn_coefficient(bd, b)
                 if kd > 0.0:
                     bdd = kd / (1.0 + kd * p.inv_mass[o])
                     for r in ti.static(range(3)):
@@ -641,7 +651,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
             for r in ti.static(range(3)):
                 g[r] -= ke[r]
                 g[3 + r] -= ske[r]
-            kd = bd.turn_k[b]
+            kd = turn_coefficient(bd, b)
             if kd > 0.0:
                 kde = (kd / (1.0 + kd * p.inv_mass[o])) * turn_residual(p, bd, b, q, o, s, kd)
                 for r in ti.static(range(3)):
@@ -665,7 +675,7 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
                 e = bd.resid[b]
                 # e + G_b xi = e + dv - a x dw with a = -s (a_q / r_q) n
                 qb = -stiffness_apply(alpha, beta, n, e + dv + (s * lam) * n.cross(dw))
-                kd = bd.turn_k[b]
+                kd = turn_coefficient(bd, b)
                 if kd > 0.0:
                     # the turn's impulse received by q (its residual read before o moves)
                     ed = turn_residual(p, bd, b, q, o, s, kd)
@@ -1795,13 +1805,14 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             dist = d.norm()
             n = d / dist
             bd.normal[b] = n
-            bd.turn[b] = ti.Vector([0.0, 0.0, 0.0])
-            # the frame's turn (solve_bond_turn), from the warm start's normal impulse
-            rn_warm = bd.impulse[b].dot(n)
-            kappa = 0.0
-            if rn_warm < 0.0:
-                kappa = -rn_warm * bd.frame_th[None] / dist
-            bd.turn_k[b] = kappa
+            if bd.frame_th[None] > 0.0:
+                # the frame's turn (solve_bond_turn), from the warm start's normal impulse
+                bd.turn[b] = ti.Vector([0.0, 0.0, 0.0])
+                rn_warm = bd.impulse[b].dot(n)
+                kappa = 0.0
+                if rn_warm < 0.0:
+                    kappa = -rn_warm * bd.frame_th[None] / dist
+                bd.turn_k[b] = kappa
             hg = 0.5 * (dist - ri - rj)
             bd.half_gap[b] = hg
             ai, aj = ri + hg, rj + hg

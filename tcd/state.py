@@ -331,8 +331,9 @@ class Bonds:
     of its lower triangle), a single row in a set made without bonds (`blocks` False: an
     unbonded simulation does not pay 168 bytes per particle for it)."""
 
-    def __init__(self, capacity: int, particle_capacity: int, blocks: bool = True):
-        self.capacity, self.pool_args = capacity, (particle_capacity, blocks)
+    def __init__(self, capacity: int, particle_capacity: int, blocks: bool = True,
+                 turn: bool = False):
+        self.capacity, self.pool_args = capacity, (particle_capacity, blocks, turn)
         c = capacity
         self.inverse = ti.Vector.field(21, backend.real(), shape=particle_capacity if blocks else 1)
         # the particle-block relaxation's per-bond record (AoS), read whole at every visit
@@ -350,9 +351,12 @@ class Bonds:
         self.broken_time, self.broken_pos = _real(c), _vec(c)
         self.d_t_beg = _vec(c)
         # the frame's turn over the step (SolverSettings.bond_frame = "end"): per bond, the
-        # central tangential impulse that turns its normal force with the line of centres
-        # (solver.solve_bond_turn); frame_th: theta H while it is on, 0 when it is off
-        self.turn, self.turn_k = _vec(c), _real(c)
+        # central tangential impulse that turns its normal force with the line of centres and
+        # its coefficient (solver.solve_bond_turn), one slot each in a set made without it
+        # (`turn` False: 70 B per particle on the study's shear); frame_th: theta H while it is
+        # on, 0 when it is off (the kernels then never read them)
+        tc = c if turn else 1
+        self.turn, self.turn_k = _vec(tc), _real(tc)
         self.frame_th = _scalar(backend.real())
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         # the impulse of the step before the last (the extrapolated warm start)
