@@ -80,6 +80,13 @@ BOND_FRAME_F32 = ("\"end\" needs f64: in f32 the particle blocks of a grain bond
                   "bond_frame = \"start\"")
 
 
+def _backend_problems(backend, solver) -> list:
+    """(key, reason) of the solver settings that the backend cannot run."""
+    if backend.precision == "f32" and solver.bond_frame == "end":
+        return [("solver.bond_frame", BOND_FRAME_F32)]
+    return []
+
+
 def _raise_if(problems) -> None:
     if problems:
         raise _Problems(problems)
@@ -500,8 +507,7 @@ class Scenario(_Model):
                                  f"a second {kind} stage: a scenario has at most one prepare "
                                  "stage and one shear stage (a second one would overwrite the "
                                  f"first one's {kind}_series and mix their samples)"))
-        if self.backend.precision == "f32" and self.solver.bond_frame == "end":
-            problems.append(("solver.bond_frame", BOND_FRAME_F32))
+        problems += _backend_problems(self.backend, self.solver)
         if "prepare" in kinds and "shear" in kinds and kinds.index("prepare") > kinds.index("shear"):
             problems.append((f"stage[{kinds.index('prepare') + 1}].kind",
                              "a prepare stage after the shear stage: prepare the sample first"))
@@ -553,9 +559,9 @@ class Scenario(_Model):
             return self
         backend = _validate(BackendConfig, {**self.backend.model_dump(), **update},
                             f"{self.source} (command-line override)", prefix="backend")
-        if backend.precision == "f32" and self.solver.bond_frame == "end":
-            raise ScenarioError(f"{self.source} (command-line override)",
-                                [("solver.bond_frame", BOND_FRAME_F32)])
+        problems = _backend_problems(backend, self.solver)
+        if problems:
+            raise ScenarioError(f"{self.source} (command-line override)", problems)
         return self.model_copy(update={"backend": backend})
 
 

@@ -723,8 +723,6 @@ class Simulation:
         sk.predict(p, h, *s.gravity)
         extrap = s.warm_start_extrapolation
         if bd.total[None] > 0:
-            # (written every step, not read back: a read would sync a GPU)
-            bd.frame_th[None] = theta * h if s.bond_frame == "end" else 0.0
             sk.bonds_prepare(p, bd, h, theta, self.time + h, *self._bond_law_args(), extrap)
             if s.bond_blocks:
                 sk.bonds_factor(p, bd)

@@ -205,7 +205,7 @@ def solve_contact_dr(p: ti.template(), wl: ti.template(), ct: ti.template(), k, 
 
 @ti.func
 def solve_bond_turn(p: ti.template(), bd: ti.template(), b):
-    """The turn of intact bond b's frame over the step, when on (bd.frame_th > 0: the
+    """The turn of intact bond b's frame over the step, when on (bd.turn_on: the
     `bond_frame = "end"` setting). The bond's normal force R_n acts along its frame of the
     step's start, n; at the end of the step it acts along the new line of centres,
     n + theta H P (v_j - v_i) / L to first order (P = I - n n^T, L the distance of the centres).
@@ -240,7 +240,7 @@ def turn_coefficient(bd: ti.template(), b):
     """Bond b's turn coefficient kappa (solve_bond_turn); 0 when the turn is off, whose
     fields then hold one slot (Bonds: `turn`)."""
     kappa = 0.0
-    if bd.frame_th[None] > 0.0:
+    if bd.turn_on[None] == 1:
         kappa = bd.turn_k[b]
     return kappa
 
@@ -577,12 +577,11 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                         a[3 + c, r] -= ks[r, c]
                         a[3 + r, 3 + c] += sks[r, c]
                 # the frame's turn (solve_bond_turn) between the centres, on translation only
-                kd = turn_coefficient(bd, b)
-                if kd > 0.0:
-                    bdd = kd / (1.0 + kd * p.inv_mass[o])
+                kt = turn_stiffness(p, bd, b, o)
+                if kt > 0.0:
                     for r in ti.static(range(3)):
                         for c in ti.static(range(3)):
-                            a[r, c] += bdd * ((1.0 if ti.static(r == c) else 0.0) - n[r] * n[c])
+                            a[r, c] += kt * ((1.0 if ti.static(r == c) else 0.0) - n[r] * n[c])
         if count > 0:
             if p.inv_mass[q] > 0.0:
                 for r in ti.static(range(3)):
@@ -651,11 +650,10 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
             for r in ti.static(range(3)):
                 g[r] -= ke[r]
                 g[3 + r] -= ske[r]
-            kd = turn_coefficient(bd, b)
-            if kd > 0.0:
-                kde = (kd / (1.0 + kd * p.inv_mass[o])) * turn_residual(p, bd, b, q, o, s, kd)
+            if bd.turn_on[None] == 1:
+                qd = turn_block_impulse(p, bd, b, q, o, s, ti.Vector([0.0, 0.0, 0.0]))
                 for r in ti.static(range(3)):
-                    g[r] -= kde[r]
+                    g[r] += qd[r]
     if count > 0:
         for r in ti.static(range(6)):
             if held_unknown(p, q, r) == 1:
@@ -675,11 +673,9 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
                 e = bd.resid[b]
                 # e + G_b xi = e + dv - a x dw with a = -s (a_q / r_q) n
                 qb = -stiffness_apply(alpha, beta, n, e + dv + (s * lam) * n.cross(dw))
-                kd = turn_coefficient(bd, b)
-                if kd > 0.0:
-                    # the turn's impulse received by q (its residual read before o moves)
-                    ed = turn_residual(p, bd, b, q, o, s, kd)
-                    qd = -(kd / (1.0 + kd * p.inv_mass[o])) * (ed + (dv - dv.dot(n) * n))
+                if bd.turn_on[None] == 1:
+                    # the turn's impulse received by q (read before o moves)
+                    qd = turn_block_impulse(p, bd, b, q, o, s, dv)
                     bd.turn[b] += s * qd
                     sum_q += qd
                     p.v[o] = p.v[o] - qd * p.inv_mass[o]
@@ -700,12 +696,25 @@ def solve_particle_bonds(p: ti.template(), wl: ti.template(), bd: ti.template(),
 
 
 @ti.func
-def turn_residual(p: ti.template(), bd: ti.template(), b, q, o, s, kd):
-    """Bond b's turn (solve_bond_turn, coefficient kd) seen from its end q (sign s, neighbour
-    o): P (v_q - v_o) + s G / kd, zero when G = -kd P (v_j - v_i)."""
-    n = bd.normal[b]
-    d = p.v[q] - p.v[o]
-    return (d - d.dot(n) * n) + (s / kd) * bd.turn[b]
+def turn_stiffness(p: ti.template(), bd: ti.template(), b, o):
+    """The stiffness kappa / (1 + kappa m_o^-1) of bond b's turn (solve_bond_turn) seen from
+    the end whose neighbour is o (0 when off, or in compression)."""
+    kd = turn_coefficient(bd, b)
+    return kd / (1.0 + kd * p.inv_mass[o])
+
+
+@ti.func
+def turn_block_impulse(p: ti.template(), bd: ti.template(), b, q, o, s, dv):
+    """The impulse bond b's turn gives its end q (sign s, neighbour o) in q's block solve when
+    q's velocity changes by dv: -K (e + P dv), e = P (v_q - v_o) + s G / kappa its residual
+    (zero when G = -kappa P (v_j - v_i)), K = turn_stiffness; zero when off or in compression."""
+    out = ti.Vector([0.0, 0.0, 0.0])
+    kd = turn_coefficient(bd, b)
+    if kd > 0.0:
+        n = bd.normal[b]
+        d = p.v[q] - p.v[o] + dv
+        out = -turn_stiffness(p, bd, b, o) * ((d - d.dot(n) * n) + (s / kd) * bd.turn[b])
+    return out
 
 
 # --- pieces of a sweep shared by the serial and partitioned schedules ---------------------------
@@ -1805,13 +1814,13 @@ def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t
             dist = d.norm()
             n = d / dist
             bd.normal[b] = n
-            if bd.frame_th[None] > 0.0:
+            if bd.turn_on[None] == 1:
                 # the frame's turn (solve_bond_turn), from the warm start's normal impulse
                 bd.turn[b] = ti.Vector([0.0, 0.0, 0.0])
                 rn_warm = bd.impulse[b].dot(n)
                 kappa = 0.0
                 if rn_warm < 0.0:
-                    kappa = -rn_warm * bd.frame_th[None] / dist
+                    kappa = -rn_warm * theta * h / dist
                 bd.turn_k[b] = kappa
             hg = 0.5 * (dist - ri - rj)
             bd.half_gap[b] = hg

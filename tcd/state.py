@@ -353,11 +353,11 @@ class Bonds:
         # the frame's turn over the step (SolverSettings.bond_frame = "end"): per bond, the
         # central tangential impulse that turns its normal force with the line of centres and
         # its coefficient (solver.solve_bond_turn), one slot each in a set made without it
-        # (`turn` False: 70 B per particle on the study's shear); frame_th: theta H while it is
-        # on, 0 when it is off (the kernels then never read them)
+        # (`turn` False: 70 B per particle on the study's shear); turn_on: 1 in a set made with
+        # them (the kernels read them only then)
         tc = c if turn else 1
         self.turn, self.turn_k = _vec(tc), _real(tc)
-        self.frame_th = _scalar(backend.real())
+        self.turn_on = _scalar()
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         # the impulse of the step before the last (the extrapolated warm start)
         self.impulse_prev = _vec(c)
@@ -372,7 +372,7 @@ class Bonds:
     def reset(self):
         self.total[None] = 0
         self.broken[None] = 0
-        self.frame_th[None] = 0.0
+        self.turn_on[None] = int(self.pool_args[2])
         self.start.fill(0)
         self.rev_start.fill(0)
 
