@@ -46,6 +46,8 @@ FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "
 def frame_of(sim) -> dict:
     d = sim.state_dict()
     f = {k: d[k] for k in FRAME_KEYS}
+    if "bonds/turn" in d:       # bond_frame = "end": the whole impulse the bond gave
+        f["bonds/impulse"] = d["bonds/impulse"] + d["bonds/turn"]
     f["bonds/broken_position"] = d["bonds/broken_pos"]
     if "particles/sample_index" in d:       # a renumbered shear: each particle's sample index
         f["particles/sample_index"] = d["particles/sample_index"]

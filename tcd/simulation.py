@@ -1172,7 +1172,9 @@ class Simulation:
     def state_dict(self) -> dict:
         """The grains, contact and bond histories and last wall forces, as NumPy arrays (HDF5
         layout): with the simulation's time, walls and settings (not in it), everything needed
-        to continue the run bit-exactly (`load_state_dict`)."""
+        to continue the run bit-exactly (`load_state_dict`). With `bond_frame = "end"` also
+        bonds/turn, the frame turn's central impulse on j over the last step: the bond's whole
+        impulse is bonds/impulse (its own, the next step's warm start) plus bonds/turn."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
         n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
         d = {"particles/" + k: get(getattr(p, k), n)
@@ -1196,6 +1198,11 @@ class Simulation:
         for key in self._BOND_DEFAULTS:
             d["bonds/" + key] = get(getattr(bd, key), b)
         d["bonds/state"] = d["bonds/state"].astype(np.int8)
+        if bd.turn_on[None]:
+            # the turn's central impulse on j over the last step (bond_frame = "end"); reset
+            # every step, so not needed to continue the run: the states files' frames add it
+            # to bonds/impulse (runner.frame_of), the whole impulse the bond gave
+            d["bonds/turn"] = get(bd.turn, b)
         return d
 
     def load_state_dict(self, d: dict) -> None:
@@ -1364,7 +1371,7 @@ class Simulation:
             e["contacts/gap"] = d["contacts/gap"][c0:c1]
             e["contacts/start"] = d["contacts/start"][sl.start:sl.stop + 1] - c0
             keep = (bi >= sl.start) & (bi < sl.stop)
-            for key in self._BOND_DEFAULTS:
+            for key in (*self._BOND_DEFAULTS, *(["turn"] if "bonds/turn" in d else [])):
                 v = d["bonds/" + key][keep]
                 e["bonds/" + key] = v - sl.start if key in ("i", "j") else v
             for key in ("kind", "point", "direction", "radius", "extent", "force"):
