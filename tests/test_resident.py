@@ -180,8 +180,12 @@ def test_velocities_are_the_free_ones_plus_the_impulses(backend, tol, monkeypatc
         scale = max(np.abs(v0).max(), np.abs(dv / m[:, None]).max())
         np.testing.assert_allclose(sim.velocities(), v0 + h * g + dv / m[:, None],
                                    rtol=0, atol=10 * tol * scale)
+        # scaled like the velocities: in f32 the momentum moves the bodies and the items
+        # apart by the rounding of their sums, at the scale of the spins themselves
+        # (session 46: 9.4e-3 rad/s on a grain among grains spinning at 100 rad/s)
+        scale = max(np.abs(w0).max(), np.abs(dw / inertia[:, None]).max())
         np.testing.assert_allclose(sim.angular_velocities(), w0 + dw / inertia[:, None],
-                                   rtol=0, atol=10 * tol * np.abs(dw / inertia[:, None]).max())
+                                   rtol=0, atol=10 * tol * scale)
     assert bonded > 100 and sim.last.sweeps > 3
     sim.close()
 
