@@ -1198,7 +1198,7 @@ class Simulation:
         for key in self._BOND_DEFAULTS:
             d["bonds/" + key] = get(getattr(bd, key), b)
         d["bonds/state"] = d["bonds/state"].astype(np.int8)
-        if bd.turn_on[None]:
+        if bd.has_turn:
             # the turn's central impulse on j over the last step (bond_frame = "end"); reset
             # every step, so not needed to continue the run: the states files' frames add it
             # to bonds/impulse (runner.frame_of), the whole impulse the bond gave

@@ -369,10 +369,16 @@ class Bonds:
         self.total = _scalar()
         self.broken = _scalar()
 
+    @property
+    def has_turn(self) -> bool:
+        """Whether the set holds the turn's fields (made for bond_frame = "end"): turn_on, as
+        the host knows it without reading the field."""
+        return self.pool_args[2]
+
     def reset(self):
         self.total[None] = 0
         self.broken[None] = 0
-        self.turn_on[None] = int(self.pool_args[2])
+        self.turn_on[None] = int(self.has_turn)
         self.start.fill(0)
         self.rev_start.fill(0)
 
