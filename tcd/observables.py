@@ -108,6 +108,20 @@ def carries_force(i, j, impulse, x) -> np.ndarray:
     return out
 
 
+def bond_gap_middle(x, r, i, j) -> np.ndarray:
+    """The middle of the gap between particles i and j, x_i + (r_i + g/2) n with n the unit
+    vector from i to j and g the gap: where the solver records a bond's breakage
+    (`bonds/broken_position`) and where a bond's force acts. It is the centres' midpoint moved
+    by (r_i - r_j)/2 along n."""
+    x, r = np.asarray(x, dtype=float), np.asarray(r, dtype=float)
+    i, j = np.asarray(i, dtype=np.int64), np.asarray(j, dtype=np.int64)
+    branch = x[j] - x[i]
+    dist = np.linalg.norm(branch, axis=1)
+    gap = dist - r[i] - r[j]
+    n = branch / np.where(dist > 0.0, dist, 1.0)[:, None]
+    return x[i] + (r[i] + 0.5 * gap)[:, None] * n
+
+
 def coordination_number(i, j, n: int, loaded=None) -> float:
     """Mean number of particle-particle contacts per particle (walls excluded), 2 C / n.
 

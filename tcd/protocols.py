@@ -456,7 +456,9 @@ class Shear:
 
         Near the plane means within a quarter of the ring height of the interface; the share of
         all bonds in that band is reported next to the share of broken ones (bonds break mostly
-        near the plane when the second clearly exceeds the first)."""
+        near the plane when the second clearly exceeds the first). A bond's height is the
+        middle of its gap (`observables.bond_gap_middle`): now for an intact bond, when it broke
+        for a broken one (session 47; before, an intact bond sat at its centres' midpoint)."""
         c = self.cfg
         d = np.asarray(series["displacement"])
         s = np.asarray(series["shear_stress"])
@@ -469,9 +471,10 @@ class Shear:
         band = 0.25 * c.ring_height_mm * 1e-3
         x = sim.positions()
         if len(state):
-            # a bond's height: midpoint of its particles now (intact) or where it broke
-            mid = 0.5 * (x[st["bonds/i"], 2] + x[st["bonds/j"], 2])
-            z_b = np.where(broken, st["bonds/broken_pos"][:, 2], mid)
+            # a bond's height: the middle of its gap, now (intact) or when it broke (the point
+            # the solver records as broken_pos), so that both are measured alike
+            z_b = np.where(broken, st["bonds/broken_pos"][:, 2],
+                           obs.bond_gap_middle(x, sim.radii(), st["bonds/i"], st["bonds/j"])[:, 2])
             near = np.abs(z_b - z_i) < band
         else:
             near = np.zeros(0, bool)

@@ -649,6 +649,10 @@ def test_a_bond_breaks_midway_across_its_gap(precision):
     pos = sim.state_dict()["bonds/broken_pos"][0]
     np.testing.assert_allclose(pos, [0.004 + 0.5 * gap_beg, 0, 0], rtol=0,
                                atol=max(1e-9, 4 * position_quantum(precision, 0.005)))
+    # the same point as the shear summary's height of an intact bond (observables)
+    from tcd.observables import bond_gap_middle
+    np.testing.assert_allclose(bond_gap_middle(x, sim.radii(), [0], [1])[0], pos, rtol=0,
+                               atol=max(1e-9, 4 * position_quantum(precision, 0.005)))
 
 
 # --- session 43's mutation audit of the walls, the API, the benchmarks and the renderer -------

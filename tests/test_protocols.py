@@ -132,18 +132,22 @@ def test_shear_rings_split_at_mid_height_with_the_gap_centred_and_the_upper_ring
 
 def test_shear_finish_residual_at_the_end_and_near_plane_band_a_quarter_ring():
     """The peak and the residual (the smoothed stress at the end) of a shear, and: ring height
-    60 mm: bonds within 15 mm of the split plane are near it. Four bonds, at
-    10 and 20 mm above it (intact, midpoints) and broken at 5 and 25 mm below it."""
+    60 mm: bonds within 15 mm of the split plane are near it. Five bonds: intact between equal
+    grains at 10 and 20 mm above it, intact between an 8 mm and a 1 mm grain whose gap's
+    middle is 18 mm above it (their centres' midpoint, 14.5 mm, would be near), and broken at
+    5 and 25 mm below it (where they broke, the middle of their gap)."""
     scn = parse_scenario(PAPER)
     shear = Shear(scn.stages[1], scn, 1)
     z_i = 0.06
     x = np.array([[0, 0, z_i + 0.009], [0, 0, z_i + 0.011], [0, 0, z_i + 0.019],
-                  [0, 0, z_i + 0.021], [0, 0, 0.1], [0, 0, 0.1]], dtype=float)
-    st = {"bonds/state": np.array([0, 0, 1, 2]), "bonds/i": np.array([0, 2, 4, 4]),
-          "bonds/j": np.array([1, 3, 5, 5]),
-          "bonds/broken_pos": np.array([[0, 0, 0], [0, 0, 0], [0, 0, z_i - 0.005],
+                  [0, 0, z_i + 0.021], [0, 0, 0.1], [0, 0, 0.1],
+                  [0, 0, z_i + 0.010], [0, 0, z_i + 0.019]], dtype=float)
+    r = np.array([0.001] * 6 + [0.008, 0.001])
+    st = {"bonds/state": np.array([0, 0, 0, 1, 2]), "bonds/i": np.array([0, 2, 6, 4, 4]),
+          "bonds/j": np.array([1, 3, 7, 5, 5]),
+          "bonds/broken_pos": np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, z_i - 0.005],
                                         [0, 0, z_i - 0.025]], dtype=float)}
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, n=6)
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, radii=lambda: r, n=8)
     phase = types.SimpleNamespace(info={"z_interface": z_i, "sample_height": 0.12})
     d = np.linspace(0, 2.5e-3, 51)
     # a rise to 1 MPa at 1 mm, then a drop to a 0.3 MPa plateau: the residual is its end
@@ -152,7 +156,7 @@ def test_shear_finish_residual_at_the_end_and_near_plane_band_a_quarter_ring():
     assert out["residual_MPa"] == pytest.approx(0.3, rel=1e-12)
     assert out["tau_peak_MPa"] == pytest.approx(1.0, rel=1e-12)
     assert out["near_plane_band_mm"] == pytest.approx(15.0)
-    assert out["bonds_near_plane_fraction"] == pytest.approx(0.5)
+    assert out["bonds_near_plane_fraction"] == pytest.approx(0.4)
     assert out["broken_near_plane_fraction"] == pytest.approx(0.5)
     assert (out["bonds_broken_tension"], out["bonds_broken_shear"]) == (1, 1)
 
