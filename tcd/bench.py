@@ -224,6 +224,12 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     return out
 
 
+#: the most particles a benchmark builds (the scenarios' bound on a layer)
+MAX_PARTICLES = 10**7
+#: the most steps a benchmark runs (a step index the solver's 32-bit kernel arguments hold)
+MAX_STEPS = 2**31 - 1
+
+
 def _check_steps(time: float, time_step: float | None = None) -> None:
     """The first `WARMUP_STEPS` steps compile and are not timed: a benchmark needs one step
     more (`time_step`: the simulation's, by default the solver's default)."""
@@ -235,6 +241,9 @@ def _check_steps(time: float, time_step: float | None = None) -> None:
     if not (math.isfinite(time) and int(round(time / time_step)) >= need):
         raise ValueError(f"time {time:g} s is less than {need} time steps ({need} x {time_step:g} s): "
                          f"the first {WARMUP_STEPS} steps compile and are not timed")
+    if time / time_step > MAX_STEPS:        # (1e300 s ran for ever)
+        raise ValueError(f"time {time:g} s is more than {MAX_STEPS:.2g} time steps of "
+                         f"{time_step:g} s")
 
 
 def _sample_path(particles: int, seed: int):
@@ -392,11 +401,15 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         raise ValueError(f"sizes {sizes}: the scaling benchmark needs at least "
                          f"{SCALING_MIN_SIZE} spheres per size (its cylinder narrows as "
                          "sqrt(N), and below that it is too narrow for the 1.6 m lattice column)")
-    if steps < WARMUP_STEPS + 1:
+    if max(sizes) > MAX_PARTICLES:
+        raise ValueError(f"sizes {sizes}: at most {MAX_PARTICLES:.0e} spheres per size")
+    if not WARMUP_STEPS + 1 <= steps <= MAX_STEPS:
         raise ValueError(f"steps {steps}: at least {WARMUP_STEPS + 1} (the first {WARMUP_STEPS}, "
-                         "which compile, are not timed)")
-    if not (math.isfinite(settle) and settle >= 0.0):
-        raise ValueError(f"settle {settle}: expected a finite time >= 0 s")
+                         f"which compile, are not timed), at most {MAX_STEPS}")
+    from .simulation import SolverSettings
+    if not (math.isfinite(settle) and 0.0 <= settle <= MAX_STEPS * SolverSettings.time_step):
+        raise ValueError(f"settle {settle}: expected a finite time >= 0 s, at most "
+                         f"{MAX_STEPS:.2g} time steps")
     base = pathlib.Path(out)
     for folder in (base.parent, *base.parent.parents):
         if folder.exists() and not folder.is_dir():

@@ -332,8 +332,9 @@ def _run_bench(args) -> dict:
         except ValueError:
             raise UsageError(f"--sizes {args.sizes!r}: expected comma-separated integers") \
                 from None
-        if not sizes or min(sizes) < 1:
-            raise UsageError(f"--sizes {args.sizes!r}: expected positive particle counts")
+        if not sizes or min(sizes) < 1 or max(sizes) > MAX_BENCH_PARTICLES:
+            raise UsageError(f"--sizes {args.sizes!r}: expected positive particle counts, at "
+                             f"most {MAX_BENCH_PARTICLES:.0e}")
         def done(row):
             print(f"scaling: N = {row['particles']}: {row['seconds_per_particle_step']:.3g} s per "
                   f"particle-step, {row['mean_sweeps']:.0f} mean sweeps, residual "
@@ -410,6 +411,47 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+#: the most particles `tcd bench` builds: the scenarios' bound on a layer (config's
+#: MAX_PARTICLES_PER_LAYER); a larger count asked NumPy for an array it cannot index
+MAX_BENCH_PARTICLES = 10**7     # = tcd.bench.MAX_PARTICLES
+
+
+def _particle_count(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_BENCH_PARTICLES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_BENCH_PARTICLES:.0e} particles, "
+                                         f"got {text}")
+    return value
+
+
+MAX_IMAGE_SIDE = 16384      # pixels: a larger image asked for tens of GiB of fields
+
+
+def _image_side(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_IMAGE_SIDE:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_IMAGE_SIDE} pixels, got {text}")
+    return value
+
+
+def _frame_rate(text: str) -> float:
+    value = _positive_float(text)
+    if not 0.01 <= value <= 1000.0:     # a GIF frame lasts at most 655 s, at least 1 ms
+        raise argparse.ArgumentTypeError(f"expected a frame rate from 0.01 to 1000 per second, "
+                                         f"got {text}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
     return value
 
 
@@ -495,9 +537,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--section", choices=SECTIONS, default=None,
                    help="cut away the half in front of this vertical plane through the axis")
     p.add_argument("--camera", choices=CAMERAS, default="iso")
-    p.add_argument("--width", type=_positive_int, default=1600)
-    p.add_argument("--height", type=_positive_int, default=1200)
-    p.add_argument("--fps", type=_positive_float, default=10.0, help="animation frame rate")
+    p.add_argument("--width", type=_image_side, default=1600)
+    p.add_argument("--height", type=_image_side, default=1200)
+    p.add_argument("--fps", type=_frame_rate, default=10.0, help="animation frame rate")
     _backend_options(p, default_arch="cpu", default_precision="f64")
     p.set_defaults(handler=cmd_render)
 
@@ -549,14 +591,14 @@ def build_parser() -> argparse.ArgumentParser:
     for name, particles, text in (("pour", 2600, "pour spheres into a cylinder"),
                                   ("shear", 5200, "Leutner shear of a bonded sample")):
         b = bench_sub.add_parser(name, help=text)
-        b.add_argument("--particles", type=_positive_int, default=particles, metavar="N",
+        b.add_argument("--particles", type=_particle_count, default=particles, metavar="N",
                        help=f"particle count (default {particles})")
         b.add_argument("--time", type=_positive_float, default=None, metavar="T",
                        help="simulated seconds (default: the benchmark's own)")
         _backend_options(b, default_arch="cpu", default_precision="f64")
         b.add_argument("--tolerance", type=_positive_float, default=1e-4)
         _schedule_options(b)
-        b.add_argument("--seed", type=int, default=1)
+        b.add_argument("--seed", type=_non_negative_int, default=1)
         b.add_argument("--json", action="store_true", help="print JSON instead of a table")
         b.add_argument("--repeat", type=_positive_int, default=1, metavar="N",
                        help="run N times and report the median run (all N figures listed)")

@@ -41,6 +41,16 @@ MAX_PARTICLES_PER_LAYER = 10**7      # spheres per layer, given or derived
 _LOADER_FIELDS = ("text", "source")
 
 
+#: the most time steps one phase of a stage may last (2**31 - 1: a 32-bit step count; 5 days
+#: of simulated time at the default time step)
+MAX_STAGE_STEPS = 2**31 - 1
+
+
+def _too_many_steps(seconds: float, time_step: float) -> str:
+    return (f"{seconds:g} s, more than {MAX_STAGE_STEPS:.2g} time steps of {time_step:g} s "
+            "([solver] time_step)")
+
+
 # --- errors ------------------------------------------------------------------------------------
 class ScenarioError(ValueError):
     """A scenario that cannot be run. `problems`: (key, reason) pairs; the message has one line
@@ -346,7 +356,10 @@ class PrepareStage(_Model):
                              f"layer_height_mm ({self.layer_height_mm:g} mm)"))
         if not problems and self.particles_per_layer == 0:
             for course in self.courses:
-                n = self.layer_particle_count(course)
+                try:
+                    n = self.layer_particle_count(course)
+                except OverflowError:       # a layer's volume beyond a float: as many
+                    n = float("inf")
                 if n > MAX_PARTICLES_PER_LAYER:
                     problems.append(("size_scale",
                                      f"{n:.3g} spheres in a {course} layer (the layer filled at "
@@ -511,11 +524,27 @@ class Scenario(_Model):
         if "prepare" in kinds and "shear" in kinds and kinds.index("prepare") > kinds.index("shear"):
             problems.append((f"stage[{kinds.index('prepare') + 1}].kind",
                              "a prepare stage after the shear stage: prepare the sample first"))
+        dt = self.solver.time_step
         for k, stage in enumerate(self.stages):
+            key = f"stage[{k + 1}]"
             if isinstance(stage, PrepareStage):
                 prepared = stage
+                # (a 1e300 s vibration or 1e-300 mm/min shear was accepted and ran for ever)
+                for name in ("max_settle_time", "vibration_duration", "max_hold_time"):
+                    if getattr(stage, name) / dt > MAX_STAGE_STEPS:
+                        problems.append((f"{key}.{name}", _too_many_steps(getattr(stage, name), dt)))
+                # (1e300 Hz flung the grains to infinity: "particle positions must be finite")
+                if stage.vibration_frequency * 2 * dt > 1:
+                    problems.append((f"{key}.vibration_frequency",
+                                     f"{stage.vibration_frequency:g} Hz is above the "
+                                     f"{0.5 / dt:g} Hz that time steps of {dt:g} s can "
+                                     "follow (two steps per period)"))
                 continue
-            key = f"stage[{k + 1}]"
+            if stage.duration / dt > MAX_STAGE_STEPS:
+                problems.append((f"{key}.velocity_mm_per_min",
+                                 f"{stage.velocity_mm_per_min:g} mm/min takes "
+                                 f"{_too_many_steps(stage.duration, dt)}, for displacement_mm "
+                                 f"({stage.displacement_mm:g} mm)"))
             if stage.max_sweeps is not None and self.solver.check_every > stage.max_sweeps:
                 problems.append((f"{key}.max_sweeps",
                                  f"{stage.max_sweeps} is below [solver] check_every "

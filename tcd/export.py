@@ -261,17 +261,18 @@ def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = Non
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"{out_dir}: exists and is not a directory")
-    out_dir.mkdir(parents=True, exist_ok=True)
     stem = prefix or Path(path).stem
     written, collections = [], {p: [] for p in parts}
-    for frame in states:
-        for part in parts:
-            name = f"{stem}_{part}_{frame['index']:06d}.vtu"
-            mesh = _mesh(frame, part, h)
-            with io.atomic_path(out_dir / name) as tmp:
-                meshio.write(tmp, mesh, file_format="vtu")
-            written.append(out_dir / name)
-            collections[part].append((float(frame["time"]), name))
+    # every mesh is made before the first file is written: a frame that lacks what a part
+    # needs (a damaged file) stops the export with nothing written, not half of it
+    meshes = [(frame, part, _mesh(frame, part, h)) for frame in states for part in parts]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for frame, part, mesh in meshes:
+        name = f"{stem}_{part}_{frame['index']:06d}.vtu"
+        with io.atomic_path(out_dir / name) as tmp:
+            meshio.write(tmp, mesh, file_format="vtu")
+        written.append(out_dir / name)
+        collections[part].append((float(frame["time"]), name))
     for part, entries in collections.items():
         target = out_dir / f"{stem}_{part}.pvd"
         with io.atomic_path(target) as tmp:

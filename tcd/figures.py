@@ -172,6 +172,13 @@ def load_sample(seed: str, directory: Path) -> SampleCurves:
     for key in ("displacement", "shear_stress"):
         if key not in series:
             raise ValueError(f"{path}: series without {key!r}")
+    length = np.shape(series["displacement"])[:1]
+    for key, values in series.items():     # one number per record, as the runner writes them
+        values = np.asarray(values)
+        if values.dtype.kind not in "biuf" or values.ndim != 1 or values.shape != length:
+            raise ValueError(f"{path}: series {key!r} has shape {values.shape} and dtype "
+                             f"{values.dtype}, expected {length[0] if length else 'N'} numbers "
+                             "(as 'displacement')")
     displacement = np.asarray(series["displacement"], dtype=float)
     stress = np.asarray(series["shear_stress"], dtype=float)
     if displacement.size == 0:

@@ -804,7 +804,7 @@ def _info_checkpoint(f: h5py.File) -> list[str]:
                                if isinstance(obj, h5py.Dataset) else None)
     try:
         meta = json.loads(f.attrs.get("meta", "{}"))
-    except ValueError:
+    except (TypeError, ValueError):         # not JSON, or not text (a number)
         meta = None
     keys = ", ".join(map(str, meta)) if isinstance(meta, dict) else "(unreadable)"
     lines = [f"meta keys: {keys}", f"arrays: {len(entries)}"]
@@ -839,7 +839,7 @@ def _info_sample(ds: dict) -> list[str]:
         return []                       # not one mould (a sheared sample has two rings)
     R = float(radius[cyl[0]])
     z0, H = float(point[bottom[0], 2]), float(point[top[0], 2])
-    if H <= z0:
+    if not (H > z0 and R > 0):          # no room between the plates or inside the mould
         return []
     ids = sorted(set(layer.tolist()))
     counts = [int(np.count_nonzero(layer == L)) for L in ids]

@@ -939,6 +939,10 @@ def _decode(value):
 _PARTICLE_DEFAULTS = {"v": 0.0, "w": 0.0, "layer": 0}
 
 
+#: the largest layer id drawn (each id below it has a row in the legend's course table)
+MAX_LAYER_ID = 1000
+
+
 def load_frame(path, frame: int = -1) -> dict:
     """One snapshot of a states.h5 as a flat dict of NumPy arrays (SI units); frame=-1 is the
     last one. Missing groups give empty arrays, missing particles/v, w, layer give zeros;
@@ -964,6 +968,14 @@ def load_frame(path, frame: int = -1) -> dict:
         n = len(g["particles/x"]) if "particles/x" in g else 0
         if "particles" in g and ("particles/x" not in g or "particles/radius" not in g):
             raise ValueError(f"{where}: particles/x and particles/radius are required")
+        if "particles" in g:    # the schema's checks (shapes, dtypes, indices, radii, positions)
+            raw = {k: v for k, v in io._datasets(g).items() if k in io.FRAME_SCHEMA}
+            io.check_state(raw, where)
+            layer = np.asarray(raw.get("particles/layer", np.zeros(0, int)))
+            if layer.size and layer.max() > MAX_LAYER_ID:
+                raise ValueError(f"{where}: key 'particles/layer' holds the layer id "
+                                 f"{int(layer.max())}: at most {MAX_LAYER_ID} (a scenario has at "
+                                 "most 4 courses)")
         for key, (dataset, empty, dtype) in _FRAME_DATASETS.items():
             group = dataset.split("/")[0]
             if dataset in g:

@@ -879,6 +879,11 @@ def restore_simulation(scn, arrays: dict, meta: dict):
     return sim
 
 
+#: largest |time| (s) of a prepared sample's clock: at 1e8 s (three years) a float still resolves
+#: the smallest time step, 1e-7 s (its spacing there is 1.5e-8 s)
+MAX_SAMPLE_TIME = 1e8
+
+
 def read_prepared(path) -> tuple[dict, dict]:
     """The arrays and meta of the prepared sample at `path`, checked for everything a shear
     needs from it, without building a simulation (so that `tcd run` can check every seed's
@@ -917,8 +922,9 @@ def read_prepared(path) -> tuple[dict, dict]:
         domain = np.asarray(meta["domain"], dtype=float)
         if domain.shape != (2, 3) or not np.all(np.isfinite(domain)):
             raise ValueError(f"domain must be two finite 3-vectors, got {meta['domain']!r}")
-        if not math.isfinite(float(meta["time"])):
-            raise ValueError(f"time must be finite, got {meta['time']!r}")
+        if not abs(float(meta["time"])) < MAX_SAMPLE_TIME:
+            raise ValueError(f"time must be finite and within +-{MAX_SAMPLE_TIME:g} s (the "
+                             f"clock must still advance by a time step), got {meta['time']!r}")
     except KeyError as exc:
         raise ValueError(f"{p}: its meta lacks {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -949,7 +955,12 @@ def load_prepared(scn, path):
     format) as a simulation. A run's checkpoint.h5, or a sample that already has bonds (it
     was sheared), is refused: shearing it would shear a sample twice, or half-prepared."""
     arrays, meta = read_prepared(path)
-    return restore_simulation(scn, arrays, meta)
+    try:
+        return restore_simulation(scn, arrays, meta)
+    except ValueError as exc:       # the sample cannot be simulated: say which file it is
+        message = str(exc)
+        raise ValueError(message if message.startswith(str(path)) else f"{path}: {message}") \
+            from None
 
 
 def summarize(scn, samples: list) -> dict:

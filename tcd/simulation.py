@@ -1234,6 +1234,10 @@ class Simulation:
         if m > self.contacts.capacity:
             self._resize_contacts(m)
         ct = self.contacts
+        start = np.asarray(d["contacts/start"])
+        if start.size and (start.min() < 0 or start.max() > ct.capacity):
+            raise ValueError(f"state's contacts/start holds offsets outside its {m} contacts "
+                             f"and this simulation's contact buffer ({ct.capacity} slots)")
         put(ct.prev_j, d["contacts/j"])
         put(ct.prev_impulse, d["contacts/impulse"])
         # each contact's impulse the step before (a state written before the extrapolated warm
@@ -1641,7 +1645,14 @@ def check_state_arrays(d: dict) -> None:
     need("contacts/gap", (m,))
     # (its values are not checked: a simulation that never stepped holds its pooled
     # buffer's old ones, which nothing reads while its contact count is 0)
-    need("contacts/start", (n + 1,), kind="i")
+    start = need("contacts/start", (n + 1,), kind="i")
+    # each particle's contacts are start[i]..start[i+1] of the contact list: a range outside
+    # it would be read past the list's end (out of bounds on the device). Without contacts the
+    # table may be a pooled buffer's old values (a simulation that never stepped):
+    # load_state_dict bounds those by its buffer's capacity
+    if m and (start.min() < 0 or start.max() > m or np.any(np.diff(start) < 0)):
+        raise ValueError(f"state's contacts/start is not a non-decreasing table of offsets into "
+                         f"its {m} contacts (values from 0 to {m})")
     b = len(arr("bonds/state"))
     state = need("bonds/state", (b,), kind="i")
     if b and not np.all(np.isin(state, (sk.INTACT, sk.BROKEN_TENSION, sk.BROKEN_SHEAR))):

@@ -621,3 +621,166 @@ def test_every_module_of_the_package_is_reachable_after_a_plain_import_tcd():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.splitlines()[-3:] == ["True", "append_frame run_lock plane",
                                             "module 'tcd' has no attribute 'no_such_module'"]
+
+
+# --- session 47's input fuzzing -------------------------------------------------------------------
+def _damaged_sample(tmp_path, name, change):
+    """A copy of the shipped sample with `change(h5py.File)` applied."""
+    import h5py
+    path = tmp_path / f"{name}.h5"
+    path.write_bytes(SAMPLE.read_bytes())
+    with h5py.File(path, "a") as f:
+        change(f)
+    return path
+
+
+def _set(key, edit):
+    def change(f):
+        a = f[key][()]
+        edit(a)
+        del f[key]
+        f[key] = a
+    return change
+
+
+def _set_meta(**values):
+    def change(f):
+        f.attrs["meta"] = json.dumps({**json.loads(f.attrs["meta"]), **values})
+    return change
+
+
+@pytest.mark.parametrize("name, change, words", [
+    # a contact offset past the contact list: the warm start read it out of bounds and the
+    # run died of a segmentation fault, after writing run.json and a states.h5
+    ("start", _set("arrays/contacts/start", lambda a: a.__setitem__(5, 2**30)),
+     "contacts/start is not a non-decreasing table"),
+    ("start_negative", _set("arrays/contacts/start", lambda a: a.__setitem__(5, -7)),
+     "contacts/start is not a non-decreasing table"),
+    # a clock at 1e308 s: an OverflowError traceback at the first snapshot
+    ("time", _set_meta(time=1e308), "time must be finite and within"),
+])
+def test_a_sample_that_would_crash_the_shear_is_refused_before_anything_is_written(
+        tmp_path, capsys, name, change, words):
+    sample = _damaged_sample(tmp_path, name, change)
+    scenario = tmp_path / "s.toml"
+    scenario.write_text(f'name = "s"\n[[stage]]\nkind = "shear"\nsample = "{sample}"\n')
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {sample}: ") and words in err, err
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
+
+
+def test_info_of_a_sample_with_a_damaged_mould_or_meta_is_a_summary_not_a_traceback(tmp_path,
+                                                                                     capsys):
+    """A mould of radius 0 divided by zero in the packing fraction; a `meta` attribute that is
+    a number made json.loads raise TypeError (session 47's fuzzing)."""
+    for name, change in (("mould", _set("arrays/walls/radius", lambda a: a.fill(0.0))),
+                         ("meta", lambda f: f.attrs.__setitem__("meta", 3))):
+        path = _damaged_sample(tmp_path, name, change)
+        assert main(["info", str(path)]) == 0, name
+        assert "tcd checkpoint file" in capsys.readouterr().out
+
+
+def test_export_of_a_frame_lacking_a_part_writes_nothing(tmp_path, capsys):
+    """A states frame without walls/point: the particles', contacts' and bonds' files of the
+    frame were written before the walls' mesh failed (session 47's fuzzing)."""
+    import h5py
+    states = tmp_path / "states.h5"
+    arrays, _ = io.load_checkpoint(SAMPLE)
+    frame = {k: v for k, v in arrays.items() if k in io.FRAME_SCHEMA}
+    io.append_frame(states, frame, time=0.0, step=0, stage="prepare")
+    with h5py.File(states, "a") as f:
+        del f["frames/000000/walls/point"]
+    out = tmp_path / "vtk"
+    assert main(["export", str(states), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {states}") and "walls/point" in err, err
+    assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("argv, words", [
+    # an OverflowError traceback from NumPy
+    (["pour", "--particles", "99999999999999999999"], "--particles: expected at most 1e+07"),
+    (["scaling", "--sizes", "99999999999999999999"], "--sizes '99999999999999999999': expected"),
+    # "expected non-negative integer", from NumPy, named no option
+    (["pour", "--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
+    # these ran for ever
+    (["pour", "--time", "1e300"], "time 1e+300 s is more than 2.1e+09 time steps"),
+    (["scaling", "--sizes", "300", "--steps", "99999999999999999999"], "at most 2147483647"),
+    (["scaling", "--sizes", "300", "--steps", "3", "--settle", "1e300"],
+     "settle 1e+300: expected a finite time >= 0 s, at most"),
+])
+def test_bench_options_out_of_range_are_one_line_naming_the_option(argv, words, capsys,
+                                                                   tmp_path, monkeypatch):
+    """Session 47's fuzzing of `tcd bench`: each is refused before a simulation is built."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", *argv]) == 2
+    err = capsys.readouterr().err
+    # (argparse's refusals print the usage first: the error is the last line)
+    assert words in err.strip().splitlines()[-1] and "Traceback" not in err, err
+
+
+def _states_with(tmp_path, key, edit):
+    """A states file of one frame (the shipped sample's arrays), its dataset `key` replaced
+    by `edit(array)` in the file (as a damaged file holds it: append_frame would refuse it)."""
+    import h5py
+    arrays, _ = io.load_checkpoint(SAMPLE)
+    path = tmp_path / "states.h5"
+    io.append_frame(path, {k: v for k, v in arrays.items() if k in io.FRAME_SCHEMA}, time=0.0,
+                    step=0, stage="prepare")
+    with h5py.File(path, "a") as f:
+        g = f["frames/000000"]
+        value = edit(g[key][()])
+        del g[key]
+        g[key] = value
+    return path
+
+
+def _with(index, value):
+    def edit(a):
+        a[index] = value
+        return a
+    return edit
+
+
+@pytest.mark.parametrize("key, edit, words", [
+    # "sphere radii must be > 0 and positions finite": neither the file nor the key named
+    ("particles/x", _with(0, np.nan), "key 'particles/x' holds 1 positions"),
+    ("particles/radius", _with(0, -1e-3), "key 'particles/radius' holds 1 radii"),
+    # NumPy's "operands could not be broadcast together ..."
+    ("particles/x", lambda a: a[:, :2], "key 'particles/x' has shape"),
+    # a layer id of 2**30 built a legend table of 2**30 rows: the render never ended
+    ("particles/layer", _with(0, 2**30), "key 'particles/layer' holds the layer id"),
+])
+def test_render_refuses_a_damaged_frame_naming_the_file_and_key(tmp_path, key, edit, words):
+    from tcd import render
+    path = _states_with(tmp_path, key, edit)
+    with pytest.raises(ValueError) as info:
+        render.load_frame(path, 0)
+    assert str(info.value).startswith(f"{path}: frame 000000: ") and words in str(info.value)
+
+
+@pytest.mark.parametrize("option, value, words", [
+    ("--width", "99999999999999999999", "--width: expected at most 16384 pixels"),   # traceback
+    ("--height", "100000", "--height: expected at most 16384 pixels"),   # 67 GB allocation
+    ("--fps", "1e-300", "--fps: expected a frame rate from 0.01 to 1000"),   # OverflowError
+])
+def test_render_sizes_and_rates_out_of_range_are_refused(tmp_path, capsys, option, value, words):
+    assert main(["render", str(SAMPLE), "--out", str(tmp_path / "a.gif"), option, value]) == 2
+    err = capsys.readouterr().err
+    assert words in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert not (tmp_path / "a.gif").exists()
+
+
+def test_a_sample_the_simulation_refuses_is_named_in_the_message(tmp_path, capsys):
+    """Two grains at one centre are found when the sample's simulation is built: the message
+    ("particles 0 and 1 have the same centre ...") did not say which file (session 47)."""
+    def same_centre(a):
+        a[1] = a[0]
+        return a
+    sample = _damaged_sample(tmp_path, "twins", _set("arrays/particles/x", same_centre))
+    scenario = tmp_path / "s.toml"
+    scenario.write_text(f'name = "s"\n[[stage]]\nkind = "shear"\nsample = "{sample}"\n')
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {sample}: ") and "same centre" in err, err

@@ -563,7 +563,6 @@ def test_the_scenario_bound_on_max_sweeps_is_the_engine_s():
         assert [m.le for m in field.metadata if hasattr(m, "le")] == [MAX_SWEEPS], model
 
 
-
 def test_gpu_study_is_the_study_on_the_resident_schedule():
     """scenarios/leutner_shear_gpu.toml is leutner_shear.toml but for its name, description,
     schedule and warm start (the extrapolated one, 0.5: about a fifth fewer sweeps, the
@@ -592,3 +591,29 @@ def test_a_smoothing_window_as_long_as_the_shear_is_refused():
         parse_scenario(text.replace("smoothing_window_mm = 0.02", "smoothing_window_mm = 0.4"),
                        "tiny.toml")
 
+
+def test_a_layer_too_large_for_a_float_is_refused_not_an_overflow(tmp_path):
+    """cylinder_diameter_mm = 1e300 with particles_per_layer = 0: the layer's volume overflowed
+    a float and the OverflowError escaped as a traceback (session 47's fuzzing)."""
+    for extra in ("cylinder_diameter_mm = 1e300",
+                  "cylinder_diameter_mm = 1e155\nlayer_height_mm = 1e155\nsample_height_mm = 1e156"):
+        err = refusal(tmp_path, MINIMAL.replace('kind = "prepare"', f'kind = "prepare"\n{extra}'))
+        assert_names(err, "stage[1].size_scale", "spheres in a binder layer", "at most 1e+07")
+
+
+@pytest.mark.parametrize("key, value, words", [
+    # accepted, then a shear of 2.4e301 s and a vibration of 1e300 s that ran for ever
+    ("velocity_mm_per_min", "1e-300", ("mm/min takes 2.4e+301 s, more than 2.1e+09 time steps",)),
+    ("vibration_duration", "1e300", ("1e+300 s, more than 2.1e+09 time steps",)),
+    ("max_hold_time", "1e300", ("1e+300 s, more than 2.1e+09 time steps",)),
+    # accepted, then "particle positions must be finite" deep in the pour
+    ("vibration_frequency", "1e300", ("above the 1000 Hz", "time steps of 0.0005 s")),
+])
+def test_stages_longer_than_a_step_count_or_faster_than_the_steps_are_refused(tmp_path, key,
+                                                                               value, words):
+    """Session 47's fuzzing of scenarios/tiny.toml (time_step 5e-4)."""
+    text, n = re.subn(rf"(?m)^{key} = .*$", f"{key} = {value}",
+                      (ROOT / "scenarios" / "tiny.toml").read_text())
+    assert n == 1
+    stage = "stage[2]" if key == "velocity_mm_per_min" else "stage[1]"
+    assert_names(refusal(tmp_path, text), f"{stage}.{key}", *words)

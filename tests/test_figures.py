@@ -378,3 +378,25 @@ def test_series_without_a_window_is_smoothed_over_0_1_mm(tmp_path):
     linear = (d > 0.1e-3) & (d < 1.1e-3)    # a linear stretch: the average is exact
     np.testing.assert_allclose(s.smoothed[linear], tau[linear], rtol=1e-9)
 
+
+@pytest.mark.parametrize("value, shown", [(np.array([b"x"] * 3000), "dtype |S1"),
+                                          (np.zeros(1), "shape (1,)"),
+                                          (np.zeros((3000, 2)), "shape (3000, 2)")])
+def test_a_series_of_the_wrong_shape_or_type_skips_its_sample_naming_file_and_key(tmp_path, value,
+                                                                                  shown):
+    """A damaged shear_series.h5 (a series of strings, of one record, or of pairs) stopped `tcd
+    figures` with NumPy's or Matplotlib's words ("could not convert string to float", "x and y
+    must have same first dimension"), naming neither the file nor the series (session 47)."""
+    import h5py
+    run = tmp_path / "run"
+    _write_sample(run, 5, 0.85e6, 2.2e-3)
+    _write_sample(run, 6, 0.80e6, 2.1e-3)
+    damaged = run / "sample_6" / "shear_series.h5"
+    with h5py.File(damaged, "a") as f:
+        del f["bonds_broken_shear"]
+        f["bonds_broken_shear"] = value
+    out = tmp_path / "out"
+    with pytest.warns(FigureWarning, match=f"sample 6 skipped: {damaged}: series "
+                                           f"'bonds_broken_shear' has {shown.replace('(', '.').replace(')', '.')}"):
+        written = make_figures(run, out)
+    assert (out / "fig4_stress_displacement.png") in written

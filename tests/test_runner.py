@@ -729,9 +729,14 @@ def test_shear_benchmark_on_a_prepared_sample_reports_phases_and_a_trace(micro_r
     assert res["seconds_per_particle_step"] > 0
     ph = res["phases"]
     assert len(ph) == 10 and sum(p["steps"] for p in ph) == 20 - bench.WARMUP_STEPS == 18
-    assert sum(p["wall_s"] for p in ph) == pytest.approx(res["loop_wall_s"], rel=0.05)
     rows = list(csv.DictReader(open(trace)))
     assert len(rows) == 18
+    # the phases share out the timed steps' walls (rounded to 1 us each), which the loop's
+    # wall holds (a comparison with the loop's own wall at 5 % failed on a busy machine: a
+    # preemption after the last step's clock is a large part of an 18-step loop of 80 grains)
+    steps_wall = sum(float(r["wall_s"]) for r in rows)
+    assert sum(p["wall_s"] for p in ph) == pytest.approx(steps_wall, abs=2e-5)
+    assert res["loop_wall_s"] >= steps_wall - 2e-5
     assert np.mean([int(r["sweeps"]) for r in rows]) == pytest.approx(res["mean_sweeps"])
     assert float(rows[-1]["residual"]) == pytest.approx(res["final_residual"], rel=1e-5)
 
