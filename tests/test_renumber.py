@@ -172,3 +172,32 @@ def test_renumber_refuses_what_it_cannot_do(settled):
         batch.close()
     finally:
         bonded.close()
+
+
+def test_a_simulation_that_never_stepped_gives_empty_contact_ranges(settled):
+    """A simulation that never stepped has no contact list, but its pooled contact buffer may
+    hold the start table of a simulation that did (here `settled`'s, closed and its fields
+    pooled). state_dict gave that old table: merged into a batch with a stepped system, its
+    offsets pointed into the other system's contacts (session 47's CI: the batch refused its
+    own merged state). Now its ranges are empty, and a batch of the two loads."""
+    stepped = settled.renumber(np.arange(settled.n))      # a copy with `settled`'s contacts
+    old = settled.renumber(np.arange(settled.n))
+    assert np.any(old.state_dict()["contacts/start"] > 0)
+    old.close()                                             # its buffer, with a table, pooled
+    fresh = pile(seed=9, n=settled.n)
+    fresh.time = stepped.time
+    try:
+        d = fresh.state_dict()
+        assert len(d["contacts/i"]) == 0
+        np.testing.assert_array_equal(d["contacts/start"], np.zeros(fresh.n + 1))
+        batch = Simulation.batch([fresh, stepped])
+        try:
+            e = batch.state_dict()
+            start = e["contacts/start"]
+            assert np.all(start[:fresh.n + 1] == 0) and np.all(np.diff(start) >= 0)
+            assert start[-1] == len(e["contacts/i"]) == len(stepped.contact_arrays()["i"])
+        finally:
+            batch.close()
+    finally:
+        fresh.close()
+        stepped.close()
