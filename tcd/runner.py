@@ -172,8 +172,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
             for seed in pending:        # a worker orphaned by a killed run may still write
                 with run_lock(out / f"sample_{seed}"):      # there: refuse before any starts
                     pass
-            with concurrent.futures.ProcessPoolExecutor(max_workers=workers,
-                                                        mp_context=ctx) as pool:
+            with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                                        initializer=_watch_parent,
+                                                        initargs=(os.getpid(),)) as pool:
                 futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
                                              scenario.backend.arch, scenario.backend.precision,
                                              seed, str(out / f"sample_{seed}"), resume, progress,
@@ -389,8 +390,9 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             phases = [Phase.from_json(ph) for ph in meta["phases"]]
             step_in_phase, next_snapshot = meta["step_in_phase"], meta["next_snapshot"]
             results = meta["results"]
-            series = [{k.split("/", 2)[2]: list(v) for k, v in arrays.items()
-                       if k.startswith(f"series/{seed}/")} for seed in seeds]
+            series = [_restored_series(arrays, f"series/{seed}/",
+                                       (meta.get("series_keys") or {}).get(str(seed)))
+                      for seed in seeds]
             wall_before = meta["wall_time_s"]
         else:
             for d in dirs.values():
@@ -429,6 +431,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                     "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
                     "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__,
                     "scenario_text": scenario.text,
+                    "series_keys": {str(seed): list(ser) for seed, ser in zip(seeds, series)},
                     "frames": {str(seed): io.frame_count(dirs[seed] / "states.h5") for seed in seeds}}
             io.save_checkpoint(ck_path, arrays, meta)
 
@@ -491,8 +494,32 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         return summary
 
 
+# held by a worker while it runs a sample (_watch_parent waits for it)
+_JOB_RUNNING = threading.Lock()
+
+
+def _watch_parent(parent: int) -> None:
+    """A `--jobs` worker's initializer: when its parent is gone (SIGKILL, an out-of-memory
+    kill), the worker finishes the sample it is running (its files, then its lock) and ends.
+    It used to wait for its next sample for ever, holding its memory (session 47's audit: both
+    workers of a killed `--jobs 2` run still asleep minutes after their samples were done)."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        with _JOB_RUNNING:
+            os._exit(0)
+    threading.Thread(target=watch, name="tcd-parent-watch", daemon=True).start()
+
+
 def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress,
                 cpu_threads=None) -> dict:
+    with _JOB_RUNNING:
+        return _run_sample_job(text, source, arch, precision, seed, sample_dir, resume,
+                               progress, cpu_threads)
+
+
+def _run_sample_job(text, source, arch, precision, seed, sample_dir, resume, progress,
+                    cpu_threads=None) -> dict:
     """One sample in a worker process (see run_scenario's `jobs`), on `cpu_threads` threads of
     Taichi's CPU pool unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS says otherwise."""
     from .config import parse_scenario
@@ -617,7 +644,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         restore_frames(states, meta.get("frames"), ck_path, seed)
         stage_idx, phase_idx, step_in_phase = meta["stage"], meta["phase_index"], meta["step_in_phase"]
         phase = Phase.from_json(meta["phase"]) if meta["phase"] else None
-        series = {k.split("/", 1)[1]: list(v) for k, v in arrays.items() if k.startswith("series/")}
+        series = _restored_series(arrays, "series/", meta.get("series_keys"))
         result = meta["result"]
         next_snapshot = meta["next_snapshot"]
     elif states.exists():
@@ -634,6 +661,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                 "result": result, "next_snapshot": next_snapshot, "walls": [w.to_dict() for w in sim.walls],
                 "bond_law": sim.bond_law.__dict__, "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
                 "tcd_version": __version__, "seed": seed, "scenario_text": scn.text,
+                # the series' column order (the checkpoint's datasets come back by name)
+                "series_keys": list(series),
                 # a resume cuts states.h5 back to these frames (a hard kill may have left more)
                 "frames": io.frame_count(states) if states.exists() else 0}
         io.save_checkpoint(ck_path, arrays, meta)
@@ -843,6 +872,23 @@ def restore_checkpoint(scn, ck_path, arrays: dict, meta: dict):
         text = str(exc) if not isinstance(exc, KeyError) else f"lacks {exc.args[0]!r}"
         raise ValueError(text if text.startswith(str(ck_path)) else
                          f"{ck_path}: cannot restore its state: {text}") from None
+
+
+# the columns every series row starts with, in their order (_run_sample, run_batch)
+SERIES_FIRST = ("time", "step", "sweeps", "residual", "contacts", "kinetic_energy")
+
+
+def _restored_series(arrays: dict, prefix: str, keys) -> dict:
+    """The series a checkpoint holds under `prefix`, as lists, in the order they were recorded
+    (`keys`, from the checkpoint's meta): HDF5 gives a group's datasets back by name, and a
+    resumed run wrote its series CSV with its columns sorted by name (bonds_broken_shear first,
+    time eighth; session 47's audit). A checkpoint without the record (before session 47) has
+    the columns every row starts with first, the others by name."""
+    found = {k[len(prefix):]: list(v) for k, v in arrays.items() if k.startswith(prefix)}
+    if not isinstance(keys, list) or sorted(keys) != sorted(found):
+        keys = ([k for k in SERIES_FIRST if k in found]
+                + [k for k in found if k not in SERIES_FIRST])
+    return {k: found[k] for k in keys}
 
 
 def restore_frames(states: pathlib.Path, frames, ck_path, seed: int) -> None:

@@ -314,6 +314,50 @@ def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(m
         assert np.array_equal(one[key], two[key]), key
 
 
+@pytest.mark.parametrize("stage", ["prepare", "shear"])
+def test_a_resumed_run_writes_its_series_csv_with_the_columns_in_their_order(micro_run, tmp_path,
+                                                                          monkeypatch, stage):
+    """A checkpoint's series come back from HDF5 sorted by name: a run interrupted in a stage
+    and resumed wrote that stage's CSV with its columns by name (bonds_broken_shear first,
+    time eighth; session 47's audit of kills and resumes). The checkpoint records their order:
+    the resumed run's series files are those of the uninterrupted run, byte for byte."""
+    from tcd import config, runner
+    from tcd.simulation import Simulation
+    scenario, out = micro_run
+    text = MICRO.replace("checkpoint_every_s = 0.5", "checkpoint_every_s = 1e6")
+    scn = config.parse_scenario(text, "<micro>")
+    whole = json.loads((out / "sample_3" / "summary.json").read_text())
+    at = 37 if stage == "prepare" else whole["stages"]["0:prepare"]["steps"] + 25
+    real_step, calls = Simulation.step, {"n": 0}
+
+    def step_then_ctrl_c(self, count=1):
+        calls["n"] += 1
+        if calls["n"] == at:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_step(self, count)
+    monkeypatch.setattr(Simulation, "step", step_then_ctrl_c)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            runner.run_sample(scn, 3, tmp_path / "sample_3", resume=False, progress=False)
+    finally:
+        signal.signal(signal.SIGINT, outer)
+    _, meta = io.load_checkpoint(tmp_path / "sample_3" / "checkpoint.h5")
+    assert scn.stages[meta["stage"]].kind == stage and meta["step_in_phase"] > 0
+    monkeypatch.setattr(Simulation, "step", real_step)
+    runner.run_sample(scn, 3, tmp_path / "sample_3", resume=True, progress=False)
+    for kind in ("prepare", "shear"):
+        name = f"{kind}_series.csv"
+        resumed = (tmp_path / "sample_3" / name).read_text()
+        assert resumed.startswith("time [s],step [1],sweeps [1],"), (name, resumed[:80])
+        assert resumed == (out / "sample_3" / name).read_text(), name
+        a = io.read_series(out / "sample_3" / f"{kind}_series.h5")
+        b = io.read_series(tmp_path / "sample_3" / f"{kind}_series.h5")
+        assert list(a) == list(b)
+        for key in a:
+            assert np.array_equal(a[key], b[key], equal_nan=a[key].dtype.kind == "f"), (kind, key)
+
+
 def test_sigterm_to_a_parallel_run_is_passed_on_to_its_workers(tmp_path):
     """With --jobs N the samples run in worker processes: a SIGTERM to the parent is sent on to
     every worker (each then checkpoints at the end of its step and stops) and the parent
@@ -367,7 +411,7 @@ def _shear_only(prepared, seeds="[3]"):
 def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path, monkeypatch):
     """`tcd run --batch`: two samples (seeds 3 and 4, both from seed 3's prepared file) sheared
     as one batched simulation give, each, exactly the series of the unbatched shear; a batch
-    interrupted mid-way resumes from its checkpoint to the same end; a scenario with a
+    interrupted mid-way resumes from its checkpoint to the same end, its series CSV included; a scenario with a
     preparation stage is refused with a message that says why."""
     from tcd import runner
     _, out = micro_run
@@ -405,6 +449,9 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
         got = io.read_series(tmp_path / "cut" / f"sample_{seed}" / "shear_series.h5")
         assert np.array_equal(one["shear_stress"], got["shear_stress"]), seed
         assert np.array_equal(one["time"], got["time"]), seed
+        # the CSV's columns in their order, as the uninterrupted batch's (session 47)
+        name = f"sample_{seed}/shear_series.csv"
+        assert (tmp_path / "cut" / name).read_text() == (tmp_path / "batch" / name).read_text(), seed
 
     scenario, _ = micro_run
     assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
@@ -1048,3 +1095,56 @@ def test_a_sample_still_written_by_an_orphaned_worker_is_not_resumed(micro_run, 
     assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
     resumed, first = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (run, out))
     assert resumed["tau_peak_MPa"] == first["tau_peak_MPa"] and resumed["particles"] == first["particles"]
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie, ended but not reaped, does not)."""
+    try:
+        status = pathlib.Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self/status").exists(), reason="needs /proc")
+def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
+    """A `--jobs` run whose parent is killed hard: each worker finishes its sample, then ends.
+    Both workers used to sleep for ever after their samples were done, waiting for work from
+    a parent that was gone (session 47's audit); a resume then finds both samples done."""
+    import re
+    from tcd.runner import LOCK_FILE
+    scenario, out = micro_run
+    two = tmp_path / "two_seeds.toml"
+    two.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4]", 1))
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(two), "--out", str(run),
+                             "--jobs", "2", "--arch", backend.arch(), "--precision",
+                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    workers = set()
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None and not all(
+                (run / f"sample_{s}" / "checkpoint.h5").exists() for s in (3, 4)):
+            time.sleep(0.1)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        for seed in (3, 4):
+            holder = (run / f"sample_{seed}" / LOCK_FILE).read_text()
+            workers.add(int(re.match(r"pid (\d+) ", holder).group(1)))
+        assert proc.pid not in workers and len(workers) == 2
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 300
+        while time.time() < deadline and any(_running(pid) for pid in workers):
+            time.sleep(0.5)
+        assert not any(_running(pid) for pid in workers), "a worker outlived its sample"
+        for seed in (3, 4):
+            assert (run / f"sample_{seed}" / "summary.json").exists(), seed
+    finally:
+        for pid in workers:
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
+    assert run_tcd(["run", str(two), "--out", str(run), "--resume"]) == 0
+    a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
+    assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
