@@ -129,11 +129,18 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     if resume:
-        if not out.is_dir() or not any(out.glob("sample_*/checkpoint.h5")) and not any(out.glob("sample_*/summary.json")):
+        progressed = out.is_dir() and (any(out.glob("sample_*/checkpoint.h5"))
+                                       or any(out.glob("sample_*/summary.json")))
+        if not progressed:
             if (out / "batch_checkpoint.h5").is_file():
                 raise FileNotFoundError(f"{out}: this run was started with --batch (it has a "
                                         "batch_checkpoint.h5): resume it with --batch --resume")
-            raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
+            if not (out / "scenario.toml").is_file():
+                raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
+            # a run stopped before its first checkpoint (a kill in its first minute): a fresh
+            # run is refused there (it holds results), so the resume starts every sample over
+            print(f"tcd: note: {out}: no checkpoint yet (the run stopped before its first): "
+                  "every sample starts from the beginning", file=sys.stderr)
     t_start = time.perf_counter()
     done = {}
     for seed in scenario.seeds:

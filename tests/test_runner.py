@@ -1148,3 +1148,30 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     assert run_tcd(["run", str(two), "--out", str(run), "--resume"]) == 0
     a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
+
+
+def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_run, tmp_path,
+                                                                         capsys):
+    """A hard kill in a run's first minute (before its first checkpoint) left scenario.toml,
+    run.json and a states.h5 of a few frames: `--resume` said "nothing to resume" and a new
+    run "already holds results", so the folder had to be removed by hand (session 47's audit).
+    Now the resume starts the sample over, to the uninterrupted run's numbers."""
+    import shutil
+    scenario, out = micro_run
+    run = tmp_path / "run"
+    (run / "sample_3").mkdir(parents=True)
+    for name in ("scenario.toml", "run.json"):
+        shutil.copy(out / name, run / name)
+    shutil.copy(out / "sample_3" / "states.h5", run / "sample_3" / "states.h5")
+    assert run_tcd(["run", str(scenario), "--out", str(run)]) == 2       # a fresh run: refused
+    assert "already holds results" in capsys.readouterr().err
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
+    assert "no checkpoint yet" in capsys.readouterr().err
+    a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
+    assert a["stages"] == {k: {**v, "wall_time_s": a["stages"][k]["wall_time_s"]}
+                           for k, v in b["stages"].items()}
+    assert io.frame_count(run / "sample_3" / "states.h5") == io.frame_count(out / "sample_3" / "states.h5")
+    # a folder that holds no run at all is still refused
+    (tmp_path / "other").mkdir()
+    assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "other"), "--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
