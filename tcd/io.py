@@ -82,6 +82,8 @@ import errno
 import json
 import math
 import os
+import pathlib
+import re
 import shutil
 import sys
 import tempfile
@@ -168,6 +170,25 @@ def atomic_path(path, suffix: str = ".tmp"):
             os.remove(tmp)
         raise
     _fsync_dir(directory)
+
+
+# the name atomic_path gives its temporary: "." + the target's name + "." + mkstemp's eight
+# characters + ".tmp"
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_stale_temporaries(directory) -> list[pathlib.Path]:
+    """Remove the temporaries that writers killed hard (SIGKILL, a power cut) left in
+    `directory` (atomic_path removes its own on any exception, but not when its process is
+    killed); return them. Call only while holding the directory's run lock, so that no other
+    tcd process is writing there."""
+    removed = []
+    for path in sorted(pathlib.Path(directory).glob(".*.tmp")):
+        if _TEMPORARY.fullmatch(path.name) and path.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+                removed.append(path)
+    return removed
 
 
 def _fsync_file(path):

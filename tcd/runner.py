@@ -283,7 +283,16 @@ def recorded_run(scenario, out: pathlib.Path, resume: bool):
     with run_lock(out):
         if not resume:
             record_scenario(scenario, out, resume)
+        else:       # what writes killed hard left (each sample's folder: _run_sample)
+            _note_removed(io.remove_stale_temporaries(out))
         yield
+
+
+def _note_removed(paths) -> None:
+    if paths:
+        print(f"tcd: note: removed {len(paths)} temporary file(s) that an interrupted write left "
+              f"({', '.join(str(p) for p in paths[:3])}{', ...' if len(paths) > 3 else ''})",
+              file=sys.stderr)
 
 
 def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
@@ -641,6 +650,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
     series: dict = {}
     result = {"seed": seed, "stages": {}, "wall_time_s": {}}
     next_snapshot = 0.0
+    if resume:      # (under the sample's lock: no other process writes here)
+        _note_removed(io.remove_stale_temporaries(sample_dir))
     if resume and ck_path.exists():
         arrays, meta = io.load_checkpoint(ck_path)
         check_run_checkpoint(scn, ck_path, meta, SAMPLE_CHECKPOINT_KEYS, seeds=[seed])

@@ -1155,7 +1155,8 @@ def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_r
     """A hard kill in a run's first minute (before its first checkpoint) left scenario.toml,
     run.json and a states.h5 of a few frames: `--resume` said "nothing to resume" and a new
     run "already holds results", so the folder had to be removed by hand (session 47's audit).
-    Now the resume starts the sample over, to the uninterrupted run's numbers."""
+    Now the resume starts the sample over, to the uninterrupted run's numbers. The hidden
+    temporaries that writes killed hard leave are removed by a resume (they piled up)."""
     import shutil
     scenario, out = micro_run
     run = tmp_path / "run"
@@ -1163,10 +1164,20 @@ def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_r
     for name in ("scenario.toml", "run.json"):
         shutil.copy(out / name, run / name)
     shutil.copy(out / "sample_3" / "states.h5", run / "sample_3" / "states.h5")
+    # the temporaries of writes killed hard (atomic_path's names), and files that only look so
+    stale = [run / ".run.json.k2x_9q0a.tmp", run / "sample_3" / ".states.h5.ab12cd34.tmp",
+             run / "sample_3" / ".checkpoint.h5.zz99yy88.tmp"]
+    kept = [run / ".notes.tmp", run / "sample_3" / "mine.tmp",
+            run / "sample_3" / ".states.h5.short.tmp"]
+    for path in stale + kept:
+        path.write_bytes(b"\0" * 100)
     assert run_tcd(["run", str(scenario), "--out", str(run)]) == 2       # a fresh run: refused
     assert "already holds results" in capsys.readouterr().err
     assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
-    assert "no checkpoint yet" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no checkpoint yet" in err and "removed 1 temporary file(s)" in err
+    assert "removed 2 temporary file(s)" in err
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in kept)
     a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
     assert a["stages"] == {k: {**v, "wall_time_s": a["stages"][k]["wall_time_s"]}
                            for k, v in b["stages"].items()}
