@@ -205,10 +205,12 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
 
 def _scenario_record(scenario) -> dict:
     """What a resumed run must share with the run it continues: the whole configuration but
-    the seeds (a sample's numbers depend on its seed only), the description and the file's
-    text and path (the backend is checked against run.json)."""
-    return scenario.model_dump(mode="json", exclude={"text", "source", "seeds", "backend",
-                                                     "description"})
+    the seeds (a sample's numbers depend on its seed only), the description, the file's
+    text and path (the backend is checked against run.json) and the wall-clock spacing of
+    the checkpoints (`output.checkpoint_every_s`, which changes no number or frame)."""
+    return scenario.model_dump(mode="json", exclude={
+        "text": True, "source": True, "seeds": True, "backend": True, "description": True,
+        "output": {"checkpoint_every_s"}})
 
 
 def scenario_changes(text: str, scenario, where: str) -> list:

@@ -931,13 +931,16 @@ def test_a_checkpoint_of_another_seed_is_refused():
 
 
 # runner.py _scenario_record / scenario_changes: a resume must share every section but the
-# seeds, the description and the backend; output settings included (snapshot spacing)
+# seeds, the description and the backend; output settings included (snapshot spacing), but
+# the checkpoints' wall-clock spacing (since session 47: it changes no number)
 def test_scenario_changes_cover_every_section_but_seeds_description_and_backend():
     from tcd import runner
     from tcd.config import parse_scenario
     text, scn = _tiny()
+    assert text.count("checkpoint_every_s = 5") == 1
     same = text.replace("seeds = [1]", "seeds = [1, 7]").replace(
-        'description = "scaled', 'description = "other').replace('[solver]', '[backend]\nprecision = "f32"\n\n[solver]')
+        'description = "scaled', 'description = "other').replace('[solver]', '[backend]\nprecision = "f32"\n\n[solver]').replace(
+        "checkpoint_every_s = 5", "checkpoint_every_s = 600")
     assert runner.scenario_changes(text, parse_scenario(same, scn.source), "w") == []
     for old, new, line in (
             ("snapshot_every = 0.05", "snapshot_every = 0.02", "output.snapshot_every: 0.05 -> 0.02"),
