@@ -720,6 +720,12 @@ def test_bench_options_out_of_range_are_one_line_naming_the_option(argv, words, 
     assert words in err.strip().splitlines()[-1] and "Traceback" not in err, err
 
 
+def test_the_bench_particle_bound_is_the_scenarios_layer_bound():
+    """The command line keeps its own copy (`tcd --help` imports nothing heavy)."""
+    from tcd import bench, cli, config
+    assert cli.MAX_BENCH_PARTICLES == bench.MAX_PARTICLES == config.MAX_PARTICLES_PER_LAYER
+
+
 def _states_with(tmp_path, key, edit):
     """A states file of one frame (the shipped sample's arrays), its dataset `key` replaced
     by `edit(array)` in the file (as a damaged file holds it: append_frame would refuse it)."""
