@@ -15,6 +15,9 @@ import time
 import numpy as np
 
 from . import backend, packing, walls
+# the most particles a benchmark builds (the scenarios' bound on a layer) and the most steps it
+# runs (a stage's bound: a step index the solver's 32-bit kernel arguments hold)
+from .config import MAX_PARTICLES_PER_LAYER as MAX_PARTICLES, MAX_STAGE_STEPS as MAX_STEPS
 
 CYLINDER_RADIUS = 0.075
 SCALING_MIN_SIZE = 300
@@ -222,12 +225,6 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     if trace:
         out["trace"] = str(write_trace(trace, per_step, worst_sweeps, worst_residuals))
     return out
-
-
-#: the most particles a benchmark builds (the scenarios' bound on a layer)
-MAX_PARTICLES = 10**7
-#: the most steps a benchmark runs (a step index the solver's 32-bit kernel arguments hold)
-MAX_STEPS = 2**31 - 1
 
 
 def _check_steps(time: float, time_step: float | None = None) -> None:

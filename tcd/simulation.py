@@ -1187,10 +1187,7 @@ class Simulation:
             "contacts/i": get(ct.i, m), "contacts/j": get(ct.j, m),
             "contacts/impulse": get(ct.impulse, m), "contacts/gap": get(ct.gap, m),
             "contacts/impulse_old": get(ct.impulse_old, m),
-            # a simulation that never stepped has no contact list: its pooled buffer's start
-            # table holds another's old offsets (merged into a batch, they pointed into the
-            # other systems' contacts), so every particle's range is given empty
-            "contacts/start": get(ct.start, n + 1) if m else np.zeros(n + 1, np.int32),
+            "contacts/start": get(ct.start, n + 1),
             "walls/kind": np.array([KINDS[w.kind] for w in self.walls], np.int32),
             "walls/point": np.array([w.position(self.time) for w in self.walls]).reshape(nw, 3),
             "walls/direction": np.array([w.direction for w in self.walls], float).reshape(nw, 3),

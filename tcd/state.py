@@ -308,9 +308,12 @@ class Contacts:
                                             shape=MAX_WALLS * (capacity // WALL_CHUNK + 1))
 
     def reset(self):
+        # a recycled buffer holds its last simulation's lists: empty ranges for every particle
+        # (a simulation that never stepped gives them in its state, which a batch merges)
         self.total[None] = 0
         self.prev_total[None] = 0
         self.prev_start.fill(0)
+        self.start.fill(0)
 
 
 @field_record
