@@ -685,10 +685,7 @@ def test_export_of_a_frame_lacking_a_part_writes_nothing(tmp_path, capsys):
     """A states frame without walls/point: the particles', contacts' and bonds' files of the
     frame were written before the walls' mesh failed (session 47's fuzzing)."""
     import h5py
-    states = tmp_path / "states.h5"
-    arrays, _ = io.load_checkpoint(SAMPLE)
-    frame = {k: v for k, v in arrays.items() if k in io.FRAME_SCHEMA}
-    io.append_frame(states, frame, time=0.0, step=0, stage="prepare")
+    states = _one_frame_states(tmp_path)
     with h5py.File(states, "a") as f:
         del f["frames/000000/walls/point"]
     out = tmp_path / "vtk"
@@ -726,14 +723,20 @@ def test_the_bench_particle_bound_is_the_scenarios_layer_bound():
     assert cli.MAX_BENCH_PARTICLES == bench.MAX_PARTICLES == config.MAX_PARTICLES_PER_LAYER
 
 
-def _states_with(tmp_path, key, edit):
-    """A states file of one frame (the shipped sample's arrays), its dataset `key` replaced
-    by `edit(array)` in the file (as a damaged file holds it: append_frame would refuse it)."""
-    import h5py
+def _one_frame_states(tmp_path):
+    """A states file of one frame: the shipped sample's arrays."""
     arrays, _ = io.load_checkpoint(SAMPLE)
     path = tmp_path / "states.h5"
     io.append_frame(path, {k: v for k, v in arrays.items() if k in io.FRAME_SCHEMA}, time=0.0,
                     step=0, stage="prepare")
+    return path
+
+
+def _states_with(tmp_path, key, edit):
+    """`_one_frame_states`, its dataset `key` replaced by `edit(array)` in the file (as a
+    damaged file holds it: append_frame would refuse it)."""
+    import h5py
+    path = _one_frame_states(tmp_path)
     with h5py.File(path, "a") as f:
         g = f["frames/000000"]
         value = edit(g[key][()])
