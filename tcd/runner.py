@@ -279,15 +279,55 @@ def run_lock(out: pathlib.Path):
 def recorded_run(scenario, out: pathlib.Path, resume: bool):
     """`record_scenario` under the run's lock (`run_lock`), held for the body: one process
     writes into `out` at a time. A resume's checks come before the lock is taken, so that a
-    refused resume writes nothing, not even the lock file."""
+    refused resume writes nothing, not even the lock file. A new run refused once its records
+    were written (a sample's simulation cannot be built: two grains at one centre, a grid too
+    large) takes its records back (`_take_back_records`); an interrupted one keeps them, so
+    that it can be resumed."""
     if resume:
         record_scenario(scenario, out, resume)
-    with run_lock(out):
+    before = None if resume else _paths_in(out)       # None too when `out` is new
+    try:
+        with run_lock(out):
+            if not resume:
+                record_scenario(scenario, out, resume)
+            else:       # what writes killed hard left (each sample's folder: _run_sample)
+                _note_removed(io.remove_stale_temporaries(out))
+            yield
+    except Exception:
         if not resume:
-            record_scenario(scenario, out, resume)
-        else:       # what writes killed hard left (each sample's folder: _run_sample)
-            _note_removed(io.remove_stale_temporaries(out))
-        yield
+            _take_back_records(out, before)
+        raise
+
+
+#: what a new run writes before its samples run: its records and its lock (and a lock in each
+#: sample's folder)
+RECORD_FILES = ("scenario.toml", "run.json", LOCK_FILE)
+
+
+def _paths_in(out: pathlib.Path) -> set | None:
+    """Every path under `out` (None when `out` does not exist)."""
+    return set(out.rglob("*")) if out.is_dir() else None if not out.exists() else set()
+
+
+def _take_back_records(out: pathlib.Path, before: set | None) -> None:
+    """After a new run failed: when what it added to `out` (the paths not in `before`, None
+    when `out` did not exist) is nothing but its records, locks and empty folders (no sample
+    wrote anything), remove them, and `out` itself if the run created it, so that the refusal
+    leaves the directory as it was. A run that wrote anything else keeps it all."""
+    if not out.is_dir():            # the failure was to make it
+        return
+    try:
+        added = sorted(_paths_in(out) - (before or set()), key=lambda q: len(q.parts),
+                       reverse=True)
+        if any(not q.is_dir() and q.name != LOCK_FILE
+               and (q.parent != out or q.name not in RECORD_FILES) for q in added):
+            return
+        for q in added:
+            q.rmdir() if q.is_dir() else q.unlink()
+        if before is None:
+            out.rmdir()
+    except OSError:         # another process writes there now: leave it all
+        pass
 
 
 def _note_removed(paths) -> None:
@@ -1012,8 +1052,48 @@ def check_samples(scn, seeds) -> None:
                 *_, problems = proto.sample_geometry(
                     [Wall.from_dict(w) for w in meta["walls"]], np.asarray(arrays["particles/x"]),
                     np.asarray(arrays["particles/radius"]), float(meta["time"]))
+                problems += mass_problems(arrays, scn.material.density)
                 if problems:
                     raise ValueError(f"{path} (seed {seed}): {'; '.join(problems)}")
+
+
+#: how far (relative) a prepared grain's mass may be from density * 4/3 pi r^3, and its moment
+#: of inertia from 2/5 m r^2: the rounding of an f32 state, with a margin
+MASS_TOLERANCE = 1e-5
+
+
+def mass_problems(arrays: dict, density: float) -> list[str]:
+    """What is wrong with a prepared sample's masses for a shear whose scenario says
+    `density`: the shear runs with the sample's own masses (particles/inv_mass, inv_inertia),
+    so masses of another density, or not those of solid spheres, would go unnoticed in its
+    results. A kinematic grain (both inverses 0) is allowed."""
+    r = np.asarray(arrays["particles/radius"], dtype=float)
+    inv_m = np.asarray(arrays["particles/inv_mass"], dtype=float)
+    inv_i = np.asarray(arrays["particles/inv_inertia"], dtype=float)
+    free = inv_m > 0
+    problems = []
+    if np.any(~free & (inv_i != 0)):
+        problems.append(f"{int(np.count_nonzero(~free & (inv_i != 0)))} grain(s) have no inverse "
+                        "mass (kinematic) but a nonzero inverse moment of inertia")
+    if not np.any(free):
+        return problems
+    rf, mf = r[free], 1.0 / inv_m[free]
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        rho = mf / (4.0 / 3.0 * np.pi * rf**3)
+        inertia = 1.0 / inv_i[free]
+        off = np.abs(inertia / (0.4 * mf * rf**2) - 1.0)
+    lo, hi = float(np.min(rho)), float(np.max(rho))
+    if not (abs(lo / density - 1.0) <= MASS_TOLERANCE and abs(hi / density - 1.0) <= MASS_TOLERANCE):
+        held = f"{lo:.6g} kg/m^3" if hi <= lo * (1 + MASS_TOLERANCE) else f"{lo:.6g} to {hi:.6g} kg/m^3"
+        problems.append(f"its grains' masses (particles/inv_mass and radius) are those of a density "
+                        f"of {held}, and the scenario's [material] density is {density:g}: the shear "
+                        "would run with the sample's masses; set density to the sample's, or "
+                        "prepare the sample with this density")
+    bad = ~(off <= MASS_TOLERANCE)
+    if np.any(bad):
+        problems.append(f"{int(np.count_nonzero(bad))} grain(s) have a moment of inertia "
+                        "(particles/inv_inertia) other than a solid sphere's 2/5 m r^2")
+    return problems
 
 
 def load_prepared(scn, path):
@@ -1021,6 +1101,9 @@ def load_prepared(scn, path):
     format) as a simulation. A run's checkpoint.h5, or a sample that already has bonds (it
     was sheared), is refused: shearing it would shear a sample twice, or half-prepared."""
     arrays, meta = read_prepared(path)
+    problems = mass_problems(arrays, scn.material.density)
+    if problems:
+        raise ValueError(f"{path}: {'; '.join(problems)}")
     try:
         return restore_simulation(scn, arrays, meta)
     except ValueError as exc:       # the sample cannot be simulated: say which file it is

@@ -813,6 +813,19 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         # negative inverse masses were found)
         "negative_inv_mass": ({**arrays, "particles/inv_mass": -arrays["particles/inv_mass"]},
                               r"particles/inv_mass holds values below 0.0"),
+        # the shear runs with the sample's own masses (session 47's fuzz: an inverse mass of
+        # 1e300 ran to NaN; masses of another density than the scenario's went unnoticed)
+        "absurd_inv_mass": ({**arrays, "particles/inv_mass": arrays["particles/inv_mass"] * 0 + 1e300},
+                            r"masses \(particles/inv_mass and radius\) are those of a density "
+                            r"of [0-9.e+-]+ to [0-9.e+-]+ kg/m\^3, and the scenario's \[material\] "
+                            r"density is 2600"),
+        "other_density": ({**arrays, "particles/inv_mass": arrays["particles/inv_mass"] * 1.01,
+                           "particles/inv_inertia": arrays["particles/inv_inertia"] * 1.01},
+                          r"those of a density of 2574.26 kg/m\^3, and the scenario's "
+                          r"\[material\] density is 2600"),
+        "not_spheres": ({**arrays, "particles/inv_inertia": arrays["particles/inv_inertia"] * 0.6},
+                        r"\d+ grain\(s\) have a moment of inertia \(particles/inv_inertia\) "
+                        r"other than a solid sphere's 2/5 m r\^2"),
         "negative_layer": ({**arrays, "particles/layer": arrays["particles/layer"] - 5},
                            r"particles/layer holds values below 0"),
         "bad_contact": ({**arrays, "contacts/i": arrays["contacts/i"] + len(arrays["particles/x"])},
@@ -842,6 +855,42 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         err = capsys.readouterr().err
         assert str(path) in err and __import__("re").search(message, err), (name, err)
         assert not run_dir.exists(), name           # nothing ran, nothing was written
+
+
+def test_a_run_refused_while_its_sample_is_built_takes_back_its_records(micro_run, tmp_path,
+                                                                         capsys):
+    """Two grains at one centre pass the sample's checks and are refused when its simulation
+    is built, after the run wrote its records: the refusal used to leave run.json,
+    scenario.toml and an empty sample folder (session 47's fuzz). Now a new --out directory is
+    gone again, one that existed is left as it was, and a run that wrote results keeps all."""
+    _, out = micro_run
+    arrays, meta = io.load_checkpoint(out / "sample_3" / "prepared.h5")
+    x = np.array(arrays["particles/x"])
+    x[1] = x[0]
+    io.save_checkpoint(tmp_path / "s_3.h5", {**arrays, "particles/x": x}, meta)
+    scenario = tmp_path / "same_centre.toml"
+    scenario.write_text(_shear_only((tmp_path / "s_{seed}.h5").as_posix()))
+    new = tmp_path / "new_run"
+    assert run_tcd(["run", str(scenario), "--out", str(new)]) == 2
+    err = capsys.readouterr().err
+    assert "particles 0 and 1 have the same centre" in err and "s_3.h5" in err, err
+    assert not new.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    (kept / "sample_3").mkdir()
+    assert run_tcd(["run", str(scenario), "--out", str(kept)]) == 2
+    assert sorted(p.name for p in kept.rglob("*")) == ["notes.txt", "sample_3"]
+    from tcd import runner
+    from tcd.config import load_scenario
+    results = tmp_path / "results"
+    with pytest.raises(RuntimeError):
+        with runner.recorded_run(load_scenario(scenario), results, False):
+            (results / "sample_3").mkdir()
+            (results / "sample_3" / "states.h5").write_bytes(b"frames")
+            raise RuntimeError("a sample failed after writing")
+    assert sorted(p.name for p in results.rglob("*")) == [
+        ".tcd.lock", "run.json", "sample_3", "scenario.toml", "states.h5"]
 
 
 def test_a_series_ends_where_its_phase_ended_whatever_series_every(micro_run, tmp_path):
