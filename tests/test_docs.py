@@ -130,3 +130,27 @@ def test_every_repository_file_the_docs_name_exists(doc):
         if not (parent.is_dir() and any(p.name.startswith(path.name) for p in parent.iterdir())):
             missing.append(name)
     assert not missing, f"{doc.name} names files that do not exist: {missing}"
+
+
+def _script_commands() -> list[tuple[str, str]]:
+    """`python benchmarks/X.py ...` and `python examples/X.py ...` in the docs."""
+    pattern = re.compile(r"python ((?:benchmarks|examples)/[a-z_0-9]+\.py)([^`\n#]*)")
+    return sorted({(doc.name, m.group(1) + m.group(2).rstrip())
+                   for doc in DOCS for m in pattern.finditer(doc.read_text())})
+
+
+@pytest.mark.parametrize("doc, command", _script_commands(), ids=lambda v: str(v)[:80])
+def test_every_script_option_in_the_docs_is_one_the_script_declares(doc, command):
+    """The scripts' options are read from their source (an `add_argument("--name"`): importing
+    each would start Taichi."""
+    script, *words = command.split()
+    source = (ROOT / script).read_text()
+    options = {w.strip("[]").split("=", 1)[0] for w in words if w.strip("[").startswith("--")}
+    unknown = sorted(o for o in options if not re.search(rf"""["']{re.escape(o)}["']""", source))
+    assert not unknown, f"{doc}: `python {command}`: {script} declares no option {unknown}"
+
+
+def test_the_script_commands_are_found():
+    found = _script_commands()
+    assert any(c.startswith("examples/incline.py --theta") for _, c in found), found
+    assert len(found) > 20
