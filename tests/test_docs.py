@@ -154,3 +154,37 @@ def test_the_script_commands_are_found():
     found = _script_commands()
     assert any(c.startswith("examples/incline.py --theta") for _, c in found), found
     assert len(found) > 20
+
+
+def test_every_scenario_key_the_docs_name_exists():
+    """`[solver] bond_frame`, `[output] series_every = 10`: the section and key exist in the
+    scenario schema (tcd.config), and a value given with them is one the key accepts."""
+    from tcd import config
+    sections = {name: field.annotation for name, field in config.Scenario.model_fields.items()
+                if isinstance(field.annotation, type) and issubclass(field.annotation, config._Model)}
+    mention = re.compile(r"`\[([a-z_]+)\] ([a-z_]+)(?: = ([^`]+))?`")
+    checked, wrong = 0, []
+    for doc in DOCS:
+        for section, key, value in mention.findall(doc.read_text()):
+            checked += 1
+            model = sections.get(section)
+            if model is None or key not in model.model_fields:
+                wrong.append(f"{doc.name}: [{section}] {key}")
+                continue
+            if value and not PLACEHOLDER.search(value):
+                import tomllib
+
+                import pydantic
+                try:
+                    given = tomllib.loads(f"v = {value}")["v"]
+                except tomllib.TOMLDecodeError:
+                    continue        # a placeholder (`= c`)
+                try:
+                    model(**{key: given})
+                except pydantic.ValidationError as exc:
+                    # a refusal of the value itself; one that needs other keys along is not
+                    own = [e["msg"] for e in exc.errors() if tuple(e["loc"]) == (key,)]
+                    if own:
+                        wrong.append(f"{doc.name}: [{section}] {key} = {value}: {own}")
+    assert checked > 20
+    assert not wrong, wrong
