@@ -186,6 +186,10 @@ def cmd_run(args) -> int:
 
 
 def cmd_info(args) -> int:
+    if Path(args.file).is_dir():            # a run directory: the state of its samples
+        from .runner import run_info
+        print(run_info(args.file))
+        return 0
     path = _existing_file(args.file)
     from . import io
     with _reading(path):
@@ -518,8 +522,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "invocations; the summary then holds these samples)")
     p.set_defaults(handler=cmd_run)
 
-    p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint)")
-    p.add_argument("file", metavar="FILE.h5")
+    p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint) "
+                                    "or a run directory (each sample: done, where it stopped, "
+                                    "or not started)")
+    p.add_argument("file", metavar="FILE.h5|RUN_DIR")
     p.set_defaults(handler=cmd_info)
 
     p = sub.add_parser("render", help="render snapshots of a states file to an image or "

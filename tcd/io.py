@@ -741,6 +741,20 @@ def load_checkpoint(path) -> tuple[dict, dict]:
     return arrays, meta
 
 
+def checkpoint_meta(path) -> tuple[dict, str]:
+    """(meta, created) of the checkpoint at `path`, without reading its arrays."""
+    path = os.fspath(path)
+    with _open_tcd(path, FILE_CHECKPOINT) as f:
+        try:
+            meta = json.loads(f.attrs["meta"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: its 'meta' attribute is missing or not JSON ({exc})") \
+                from None
+        if not isinstance(meta, dict):
+            raise ValueError(f"{path}: its 'meta' attribute is not a JSON object")
+        return meta, _attr_text(f, "created")
+
+
 # --- summary ---------------------------------------------------------------------------------
 def info(path) -> str:
     """A readable multi-line summary of a tcd states, series or checkpoint file."""

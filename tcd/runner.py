@@ -395,6 +395,121 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     io.write_json(out / "run.json", {**backend_now, "tcd_version": __version__})
 
 
+def run_info(out) -> str:
+    """A readable summary of the run directory `out` (what `tcd run` writes there): its
+    scenario and backend, whether a tcd process writes into it now, and each sample's state:
+    done (its main results), stopped at a checkpoint (stage, phase, step, simulated time, when
+    written), or not started. Read from the run's own files: nothing is built or compiled."""
+    import tomllib
+    out = pathlib.Path(out)
+    stored = out / "scenario.toml"
+    if not stored.is_file():
+        raise ValueError(f"{out}: not a tcd run directory (it has no scenario.toml; `tcd info` "
+                         "reads a run directory or a tcd HDF5 file)")
+    try:
+        doc = tomllib.loads(stored.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{stored}: cannot be read ({exc})") from None
+    stages = [st.get("kind", "?") for st in doc.get("stage", []) if isinstance(st, dict)]
+    seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
+    seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
+                    if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
+    lines = [f"{out}: tcd run of scenario {doc.get('name', '?')!r} ({stored}): stages "
+             f"{', '.join(stages) or '?'}; seeds {', '.join(map(str, seeds))}"]
+    try:
+        started = json.loads((out / "run.json").read_text())
+        lines.append(f"backend: {started.get('arch', '?')} {started.get('precision', '?')}, "
+                     f"tcd {started.get('tcd_version', '?')}")
+    except (OSError, ValueError, AttributeError):
+        lines.append("backend: unknown (run.json missing or unreadable)")
+    holder = _lock_holder(out / LOCK_FILE)
+    if holder:
+        lines.append(f"running now: a tcd process writes into it ({holder})")
+    batch = out / "batch_checkpoint.h5"
+    if batch.is_file():
+        lines.append("batch: " + _checkpoint_line(batch, stages, batched=True))
+    for seed in seeds:
+        d = out / f"sample_{seed}"
+        summary, ck = d / "summary.json", d / "checkpoint.h5"
+        if summary.is_file():
+            text = _done_line(summary)
+        elif ck.is_file():
+            text = _checkpoint_line(ck, stages)
+        elif batch.is_file() and d.is_dir():
+            text = "in the batch (above)"
+        elif (d / "states.h5").is_file():
+            text = "started, no checkpoint yet"
+        else:
+            text = "not started"
+        lines.append(f"sample_{seed}: {text}")
+    if (out / "summary.json").is_file():
+        lines.append(f"run summary: {out / 'summary.json'} (`tcd figures {out}` draws the "
+                     "figures and Table 2)")
+    else:
+        lines.append("run summary: not written yet (the run has not finished; resume it with "
+                     f"`tcd run <its scenario> --out {out} --resume`)" if not holder else
+                     "run summary: not written yet")
+    return "\n".join(lines)
+
+
+def _lock_holder(path: pathlib.Path) -> str:
+    """Who holds the run lock at `path` ("" when no process does, or it cannot be told)."""
+    try:
+        import fcntl
+        with open(path, encoding="utf-8") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return f.read().strip() or "a process that did not say which"
+            fcntl.flock(f, fcntl.LOCK_UN)
+    except (ImportError, OSError):
+        pass
+    return ""
+
+
+def _done_line(path: pathlib.Path) -> str:
+    try:
+        res = json.loads(path.read_text())
+        if not isinstance(res, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as exc:
+        return f"done, but {path} cannot be read ({exc})"
+    parts = [f"done: {res['particles']} grains" if "particles" in res else "done"]
+    if isinstance(res.get("tau_peak_MPa"), (int, float)):
+        parts.append(f"peak {res['tau_peak_MPa']:.4g} MPa at {res.get('d_peak_mm', float('nan')):.3g} mm")
+    if isinstance(res.get("bonds_total"), int):
+        parts.append(f"{res.get('bonds_broken', '?')} of {res['bonds_total']} bonds broken")
+    if isinstance(res.get("packing_fraction"), (int, float)):
+        parts.append(f"packing fraction {res['packing_fraction']:.3f}")
+    wall = res.get("wall_time_s")
+    if isinstance(wall, dict) and all(isinstance(v, (int, float)) for v in wall.values()):
+        parts.append(f"{sum(wall.values()):.0f} s of wall time")
+    return ", ".join(parts)
+
+
+def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False) -> str:
+    try:
+        meta, created = io.checkpoint_meta(path)
+        if batched:
+            phase = meta["phases"][0]       # one per sample, stepped together
+            where = f"the shear of seeds {', '.join(map(str, meta['seeds']))}"
+        else:
+            k = int(meta["stage"])
+            phase = meta.get("phase")
+            where = (f"stage {k + 1} of {len(stages)} ({stages[k]})" if 0 <= k < len(stages)
+                     else f"stage {k + 1}")
+        text = f"stopped in {where}"
+        if isinstance(phase, dict):
+            text += (f", phase {phase.get('name', '?')!r} at step {meta.get('step_in_phase', '?')} "
+                     f"of {'at most ' if phase.get('settle') else ''}{phase.get('steps', '?')}")
+        elif isinstance(meta.get("phase_index"), int):     # between two phases
+            text += f", before its phase {meta['phase_index'] + 1}"
+        text += f", t = {float(meta['time']):.4f} s; checkpoint {path.name} written {created or '?'}"
+        return text
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        return f"a checkpoint that cannot be read ({path}: {exc})"
+
+
 def batch_problem(scenario) -> str | None:
     """Why `scenario` cannot run as one batch (None when it can)."""
     stages = scenario.stages

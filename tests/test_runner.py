@@ -182,6 +182,7 @@ def test_same_scenario_same_numbers_with_parallel_samples(micro_run, tmp_path):
 
 
 def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
+    from tcd import runner
     scenario, out = micro_run
     killed = tmp_path / "killed"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -202,6 +203,15 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     assert not (killed / "summary.json").exists()
     # what was written before the kill is readable
     assert io.frame_count(killed / "sample_3" / "states.h5") >= 1
+    # `tcd info RUN_DIR` says where the sample stopped, from its checkpoint
+    _, meta = io.load_checkpoint(ck)
+    info = runner.run_info(killed)
+    where = (f"phase {meta['phase']['name']!r} at step {meta['step_in_phase']} of "
+             if meta["phase"] else f"before its phase {meta['phase_index'] + 1}, ")
+    assert f"sample_3: stopped in stage 1 of 2 (prepare), {where}" in info, info
+    assert f"t = {meta['time']:.4f} s; checkpoint checkpoint.h5 written 20" in info, info
+    assert "run summary: not written yet" in info and "--resume" in info, info
+    assert "running now" not in info, info
     assert run_tcd(["run", str(scenario), "--out", str(killed), "--resume"]) == 0
     a, _ = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
     b, _ = io.load_checkpoint(killed / "sample_3" / "checkpoint.h5")
@@ -214,6 +224,39 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     assert sa["cpu_loops"] == [backend.loop_mode()]
     assert backend.loop_mode() in ("inline", "inline (fast math off)")
     assert sb["cpu_loops"] == [backend.loop_mode()] * 2
+
+
+def test_tcd_info_of_a_run_directory_tells_each_samples_state(micro_run, tmp_path, capsys):
+    """`tcd info RUN_DIR`: a finished sample's numbers (those of its summary), a seed not
+    started, a process writing into the run now; a directory that is not a run is refused."""
+    from tcd import runner
+    scenario, out = micro_run
+    from tcd import cli
+    assert cli.main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    res = json.loads((out / "sample_3" / "summary.json").read_text())
+    assert text.startswith(f"{out}: tcd run of scenario 'micro' ({out / 'scenario.toml'}): "
+                           "stages prepare, shear; seeds 3\n"), text
+    assert f"backend: {backend.arch()} {backend.precision()}, tcd " in text, text
+    assert (f"sample_3: done: {res['particles']} grains, peak {res['tau_peak_MPa']:.4g} MPa at "
+            f"{res['d_peak_mm']:.3g} mm, {res['bonds_broken']} of {res['bonds_total']} bonds "
+            f"broken, packing fraction {res['packing_fraction']:.3f}, "
+            f"{sum(res['wall_time_s'].values()):.0f} s of wall time\n") in text, text
+    assert f"run summary: {out / 'summary.json'}" in text
+    import shutil
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "summary.json").unlink()
+    (copy / "scenario.toml").write_text(
+        (copy / "scenario.toml").read_text().replace("seeds = [3]", "seeds = [3, 7]"))
+    with runner.run_lock(copy):
+        text = runner.run_info(copy)
+    assert "sample_7: not started" in text, text
+    assert f"running now: a tcd process writes into it (pid {os.getpid()} on " in text, text
+    assert "run summary: not written yet\n" not in text and text.endswith("not written yet"), text
+    assert "running now" not in runner.run_info(copy)
+    assert cli.main(["info", str(tmp_path)]) == 2
+    assert "not a tcd run directory (it has no scenario.toml" in capsys.readouterr().err
 
 
 def test_resume_without_checkpoint_is_refused(tmp_path):
@@ -443,6 +486,11 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
         runner.run_batch(load_here(pair), tmp_path / "cut", progress=False)
     assert (tmp_path / "cut" / "batch_checkpoint.h5").exists()
     assert not (tmp_path / "cut" / "summary.json").exists()
+    _, meta = io.load_checkpoint(tmp_path / "cut" / "batch_checkpoint.h5")
+    info = runner.run_info(tmp_path / "cut")            # `tcd info RUN_DIR`
+    assert (f"batch: stopped in the shear of seeds 3, 4, phase {meta['phases'][0]['name']!r} at "
+            f"step {meta['step_in_phase']} of {meta['phases'][0]['steps']}, t = ") in info, info
+    assert "sample_3: in the batch (above)\nsample_4: in the batch (above)" in info, info
     monkeypatch.undo()
     assert run_tcd(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
     for seed in (3, 4):
