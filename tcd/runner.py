@@ -500,8 +500,13 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False)
                      else f"stage {k + 1}")
         text = f"stopped in {where}"
         if isinstance(phase, dict):
-            text += (f", phase {phase.get('name', '?')!r} at step {meta.get('step_in_phase', '?')} "
-                     f"of {'at most ' if phase.get('settle') else ''}{phase.get('steps', '?')}")
+            layer = (phase.get("info") or {}).get("layer")
+            name = repr(phase.get("name", "?")) + (f" of layer {layer + 1}"
+                                                   if isinstance(layer, int) else "")
+            number = (f"phase {meta['phase_index'] + 1} ({name})"
+                      if isinstance(meta.get("phase_index"), int) else f"phase {name}")
+            text += (f", {number} at step {meta.get('step_in_phase', '?')} of "
+                     f"{'at most ' if phase.get('settle') else ''}{phase.get('steps', '?')}")
         elif isinstance(meta.get("phase_index"), int):     # between two phases
             text += f", before its phase {meta['phase_index'] + 1}"
         text += f", t = {float(meta['time']):.4f} s; checkpoint {path.name} written {created or '?'}"

@@ -206,7 +206,9 @@ def test_killed_run_resumes_to_the_same_final_state(micro_run, tmp_path):
     # `tcd info RUN_DIR` says where the sample stopped, from its checkpoint
     _, meta = io.load_checkpoint(ck)
     info = runner.run_info(killed)
-    where = (f"phase {meta['phase']['name']!r} at step {meta['step_in_phase']} of "
+    where = (f"phase {meta['phase_index'] + 1} ({meta['phase']['name']!r} of layer "
+             f"{meta['phase']['info']['layer'] + 1}) at step {meta['step_in_phase']} of "
+             f"{'at most ' if meta['phase']['settle'] else ''}{meta['phase']['steps']}, "
              if meta["phase"] else f"before its phase {meta['phase_index'] + 1}, ")
     assert f"sample_3: stopped in stage 1 of 2 (prepare), {where}" in info, info
     assert f"t = {meta['time']:.4f} s; checkpoint checkpoint.h5 written 20" in info, info
