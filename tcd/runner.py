@@ -595,6 +595,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                                     step=batch.step_index, stage="shear", scenario_text=scenario.text,
                                     tcd_version=__version__)
                 res["stage_first_frame"] = {"0": k}
+            next_snapshot = next_snapshot_after(batch.time, scenario.output.snapshot_every)
         t_loop = time.perf_counter() - wall_before
         last_ck = time.perf_counter()
 
@@ -637,8 +638,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                         io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
                                         step=batch.step_index, stage="shear",
                                         scenario_text=scenario.text, tcd_version=__version__)
-                    every = scenario.output.snapshot_every
-                    next_snapshot = (math.floor(batch.time / every + 1e-9) + 1) * every
+                    next_snapshot = next_snapshot_after(batch.time, scenario.output.snapshot_every)
                 bar.count_sweeps(rec.sweeps)
                 if step_in_phase % 100 == 0:
                     bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
@@ -772,6 +772,13 @@ class ForwardTerm(_SignalScope):
                 pass
 
 
+def next_snapshot_after(t: float, every: float) -> float:
+    """The time of the next snapshot after one written at `t`: the next multiple of `every`
+    (a run that starts from a sample at t > 0 writes no burst of frames to catch up, and a
+    shear from a saved sample writes the frames of the same shear inside a full run)."""
+    return (math.floor(t / every + 1e-9) + 1) * every
+
+
 def _checkpoint_if_due(interrupt, last_ck: float, every_s: float, save, bar) -> float:
     """Checkpoint (`save()`) when `every_s` seconds of wall time have passed since `last_ck` or
     a Ctrl-C is pending; after a Ctrl-C, stop (KeyboardInterrupt) once the checkpoint is
@@ -868,6 +875,10 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                     k = io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
                                         stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
                     result.setdefault("stage_first_frame", {})[str(stage_idx)] = k
+                    # that frame counts as the snapshot due now: the next comes a whole
+                    # interval later (it used to come at the stage's first step)
+                    next_snapshot = max(next_snapshot,
+                                        next_snapshot_after(sim.time, scn.output.snapshot_every))
             bar = Progress(progress, f"seed {seed} {stage.kind}:{phase.name}", phase.steps, h)
             bar.update(step_in_phase, sim.time)
             stop = False
@@ -891,10 +902,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                 if sim.time >= next_snapshot - 1e-12:
                     io.append_frame(states, frame_of(sim), time=sim.time, step=sim.step_index,
                                     stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
-                    # the next multiple of the interval after now (a run that starts from a
-                    # sample at t > 0 does not write a burst of frames to catch up)
-                    every = scn.output.snapshot_every
-                    next_snapshot = (math.floor(sim.time / every + 1e-9) + 1) * every
+                    next_snapshot = next_snapshot_after(sim.time, scn.output.snapshot_every)
                 bar.count_sweeps(rec.sweeps)
                 if step_in_phase % 100 == 0:
                     bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")

@@ -482,6 +482,20 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     frames = io.read_frame(tmp_path / "batch" / "sample_4" / "states.h5", -1)
     final = io.read_frame(tmp_path / "one" / "sample_3" / "states.h5", -1)
     assert np.array_equal(frames["particles/x"], final["particles/x"])
+    # a shear from the saved sample writes the frames of the same shear inside the full run
+    # (it wrote one more, at its first step; so did every stage of a run: session 48's audit)
+    import h5py
+
+    def frame_times(path, stage):
+        with h5py.File(path, "r") as f:
+            return [float(f["frames"][k].attrs["time"]) for k in sorted(f["frames"], key=int)
+                    if f["frames"][k].attrs["stage"] == stage]
+    full = frame_times(out / "sample_3" / "states.h5", "shear")
+    assert frame_times(tmp_path / "one" / "sample_3" / "states.h5", "shear") == full
+    assert frame_times(tmp_path / "batch" / "sample_3" / "states.h5", "shear") == full
+    prep = frame_times(out / "sample_3" / "states.h5", "prepare")
+    assert prep[0] == 0.0 and prep[1] == pytest.approx(0.05, abs=1e-9), prep[:3]
+    assert full[1] - full[0] > 5 * 5e-4, full[:3]
 
     monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(15))
     with pytest.raises(KeyboardInterrupt):
