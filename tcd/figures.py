@@ -391,7 +391,8 @@ def _new_figure(width: float, height: float) -> Figure:
 
 def _save(fig: Figure, path: Path, written: list) -> None:
     with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, format=path.suffix.lstrip("."), dpi=fig.dpi)
+        fmt = path.suffix.lstrip(".")
+        fig.savefig(tmp, format=fmt, dpi=fig.dpi, metadata=io.figure_metadata(fmt))
     written.append(path)
 
 

@@ -741,6 +741,17 @@ def load_checkpoint(path) -> tuple[dict, dict]:
     return arrays, meta
 
 
+def figure_metadata(fmt: str) -> dict | None:
+    """Matplotlib `savefig` metadata that leaves out the date it would write into a PDF, PS
+    or SVG, so that the same figure is the same bytes (`tcd figures` twice; PNG has none)."""
+    fmt = fmt.lower()
+    if fmt in ("pdf", "ps", "eps"):
+        return {"CreationDate": None}
+    if fmt == "svg":
+        return {"Date": None}
+    return None
+
+
 def checkpoint_meta(path) -> tuple[dict, str]:
     """(meta, created) of the checkpoint at `path`, without reading its arrays."""
     path = os.fspath(path)

@@ -1420,7 +1420,8 @@ def figure_velocity(path, out, frames, *, panel_width=900) -> None:
                      f"arrows ($v_x$, $v_z$) on one scale, capped at {ARROW_CAP:g} ring speeds",
                      fontsize=9)
     with atomic_output(out) as tmp:
-        fig.savefig(tmp, format=Path(out).suffix.lstrip(".") or "png")
+        fmt = Path(out).suffix.lstrip(".") or "png"
+        fig.savefig(tmp, format=fmt, metadata=io.figure_metadata(fmt))
 
 
 # ----------------------------------------------------------------------------------------------

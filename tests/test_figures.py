@@ -167,6 +167,9 @@ def test_make_figures_writes_the_paper_outputs(tmp_path):
         assert text in md
     csv_lines = (run / "figures" / "table2.csv").read_text().splitlines()
     assert len(csv_lines) == 4 and csv_lines[0].startswith("label,tau_MPa")
+    # the same figures are the same bytes: the PDF carried its creation date (session 48)
+    pdf = (run / "figures" / "fig4_stress_displacement.pdf").read_bytes()
+    assert pdf.startswith(b"%PDF") and b"/CreationDate" not in pdf
 
 
 def test_make_figures_skips_samples_without_series(tmp_path):
