@@ -198,8 +198,13 @@ def study_statistics(samples, experiment=None) -> tuple[dict, dict, dict]:
     sample without a peak, or with null / NaN, is left out of that key only) and is absent from
     mean and std when no sample has it. The relative errors ``tau_peak`` and ``d_peak`` compare
     the mean with `experiment` (default: the paper's experiments) and need both means.
+    The samples are taken in the order of their seeds (those without one last), so that a
+    study run as `--seeds 5,4,3,2,1`, split across runs, or merged by `tcd figures` has the
+    same statistics to the last bit (a sum's rounding depends on its order).
     """
     experiment = {**PAPER_EXPERIMENT, **(experiment or {})}
+    samples = sorted(samples, key=lambda smp: (not isinstance(smp.get("seed"), int),
+                                               smp.get("seed") if isinstance(smp.get("seed"), int) else 0))
     mean, std = {}, {}
     for key in STUDY_KEYS:
         values = np.array([as_number(smp.get(key)) for smp in samples], dtype=float)
