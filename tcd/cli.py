@@ -519,7 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the CPU, all at once on a GPU)")
     p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
                    help="run only these of the scenario's seeds (e.g. to split a study across "
-                        "invocations; the summary then holds these samples)")
+                        "invocations; the summary then holds these samples, and with --resume "
+                        "every sample finished in the --out directory)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint) "

@@ -196,6 +196,10 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                 done[seed] = run_sample(scenario, seed, out / f"sample_{seed}", resume=resume,
                                         progress=progress)
         samples = [done[seed] for seed in scenario.seeds]
+        if resume:      # a study split across invocations into one folder (--seeds): all of it
+            others = _finished_samples(out, exclude=scenario.seeds)
+            if others:
+                samples = sorted(samples + others, key=lambda smp: smp["seed"])
         summary = summarize(scenario, samples)
         summary["wall_time_s"]["total_this_invocation"] = time.perf_counter() - t_start
         summary["jobs"] = jobs
@@ -770,6 +774,26 @@ class ForwardTerm(_SignalScope):
                 os.kill(proc.pid, signal.SIGTERM)
             except ProcessLookupError:          # that worker has just ended
                 pass
+
+
+def _finished_samples(out: pathlib.Path, exclude) -> list[dict]:
+    """The summaries of the samples finished in the run directory `out` (its
+    sample_<seed>/summary.json) but for the seeds in `exclude`: those that earlier invocations
+    of a study split with --seeds ran into the same folder (a resume checks that they ran the
+    same scenario)."""
+    found = []
+    for d in sorted(out.glob("sample_*")):
+        seed = d.name[len("sample_"):]
+        path = d / "summary.json"
+        if seed.isdigit() and int(seed) not in exclude and path.is_file():
+            try:
+                res = json.loads(path.read_text())
+            except (OSError, ValueError) as exc:
+                raise ValueError(f"{path}: a finished sample's summary cannot be read ({exc}); "
+                                 "the run's summary would leave it out") from None
+            if isinstance(res, dict) and res.get("seed") == int(seed):
+                found.append(res)
+    return found
 
 
 def next_snapshot_after(t: float, every: float) -> float:

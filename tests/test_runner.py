@@ -261,6 +261,29 @@ def test_tcd_info_of_a_run_directory_tells_each_samples_state(micro_run, tmp_pat
     assert "not a tcd run directory (it has no scenario.toml" in capsys.readouterr().err
 
 
+def test_a_study_split_with_seeds_into_one_folder_sums_up_every_finished_sample(micro_run,
+                                                                                  tmp_path):
+    """`--seeds 3`, then `--seeds 4 --resume` into the same --out: the run's summary.json held
+    seed 4 alone, its statistics over one sample (the determinism audit of session 48)."""
+    import shutil
+    scenario, out = micro_run
+    split = tmp_path / "split"
+    shutil.copytree(out, split)
+    # seed 4 finished by an earlier invocation (its files: seed 3's, renamed)
+    shutil.copytree(split / "sample_3", split / "sample_4")
+    res4 = json.loads((split / "sample_4" / "summary.json").read_text())
+    res4.update(seed=4, tau_peak_MPa=2 * res4["tau_peak_MPa"])
+    (split / "sample_4" / "summary.json").write_text(json.dumps(res4))
+    both = tmp_path / "both.toml"
+    both.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4]"))
+    assert run_tcd(["run", str(both), "--out", str(split), "--seeds", "3", "--resume"]) == 0
+    summary = json.loads((split / "summary.json").read_text())
+    assert [smp["seed"] for smp in summary["samples"]] == [3, 4]
+    tau3 = summary["samples"][0]["tau_peak_MPa"]
+    assert summary["mean"]["tau_peak_MPa"] == pytest.approx(1.5 * tau3)
+    assert summary["std"]["tau_peak_MPa"] == pytest.approx(0.5 * tau3)
+
+
 def test_resume_without_checkpoint_is_refused(tmp_path):
     scenario = tmp_path / "micro.toml"
     scenario.write_text(MICRO)
