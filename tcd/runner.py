@@ -541,8 +541,10 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     are those of `run_scenario` (sample_<seed>/ series, states, summary.json; summary.json),
     each sample's numbers computed from its own system; the checkpoint is one file for the
     batch (batch_checkpoint.h5). A batch has one clock: every sample starts its shear at the
-    latest of the prepared samples' times (an unbatched run starts at the sample's own time,
-    so the two agree to rounding, not bit for bit)."""
+    latest of the prepared samples' times (an unbatched run starts at the sample's own time:
+    the series' `time` differs by the shift, the other numbers agree to rounding; bit for bit
+    in session 48's audit). A batch stopped before its first checkpoint starts over on
+    `--resume`."""
     from .simulation import Simulation, SystemView
     problem = batch_problem(scenario)
     if problem:
@@ -551,9 +553,18 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     seeds = list(scenario.seeds)
     out = pathlib.Path(out_dir)
     ck_path = out / "batch_checkpoint.h5"
+    from_start = not resume
     if resume and not ck_path.exists():
-        raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
-    if not resume:
+        if not (out / "scenario.toml").is_file() or any(out.glob("sample_*/checkpoint.h5")) \
+                or any(out.glob("**/summary.json")):
+            raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
+        # a batch stopped while it was built (before its first checkpoint): it starts over,
+        # as an unbatched run does (run_scenario); its scenario is still checked against the
+        # one it started with
+        print(f"tcd: note: {out}: no batch checkpoint yet (the batch stopped before its first): "
+              "it starts from the beginning", file=sys.stderr)
+        from_start = True
+    if from_start:
         check_samples(scenario, seeds)
     backend.check_available(scenario.backend.arch)     # before anything is written
     with recorded_run(scenario, out, resume):
@@ -562,7 +573,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         dirs = {seed: out / f"sample_{seed}" for seed in seeds}
         protos = {seed: PROTOCOLS["shear"](stage, scenario, seed) for seed in seeds}
         h = scenario.solver.time_step
-        if resume:
+        if not from_start:
             arrays, meta = io.load_checkpoint(ck_path)
             check_run_checkpoint(scenario, ck_path, meta, BATCH_CHECKPOINT_KEYS, seeds=seeds)
             batch = restore_checkpoint(scenario, ck_path, arrays, meta)
@@ -593,7 +604,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
         for res in results:
             _record_loop_mode(res)
         views = SystemView.all(batch)
-        if not resume:
+        if from_start:
             for seed, view, res in zip(seeds, views, results):
                 k = io.append_frame(dirs[seed] / "states.h5", frame_of(view), time=batch.time,
                                     step=batch.step_index, stage="shear", scenario_text=scenario.text,

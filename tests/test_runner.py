@@ -476,7 +476,8 @@ def _shear_only(prepared, seeds="[3]"):
     return head + shear.replace('kind = "shear"', f'kind = "shear"\nsample = "{prepared}"', 1)
 
 
-def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path, monkeypatch):
+def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path, monkeypatch,
+                                                             capsys):
     """`tcd run --batch`: two samples (seeds 3 and 4, both from seed 3's prepared file) sheared
     as one batched simulation give, each, exactly the series of the unbatched shear; a batch
     interrupted mid-way resumes from its checkpoint to the same end, its series CSV included; a scenario with a
@@ -539,6 +540,22 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
         # the CSV's columns in their order, as the uninterrupted batch's (session 47)
         name = f"sample_{seed}/shear_series.csv"
         assert (tmp_path / "cut" / name).read_text() == (tmp_path / "batch" / name).read_text(), seed
+
+    # stopped while the batch was built (SIGTERM before its first checkpoint): --resume
+    # refused it ("nothing to resume") and a new run was refused too; now it starts over
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(runner, "plan_shears", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_batch(load_here(pair), tmp_path / "early", progress=False)
+    monkeypatch.undo()
+    assert (tmp_path / "early" / "scenario.toml").is_file()
+    assert not (tmp_path / "early" / "batch_checkpoint.h5").exists()
+    assert run_tcd(["run", str(pair), "--out", str(tmp_path / "early"), "--batch", "--resume"]) == 0
+    assert "no batch checkpoint yet" in capsys.readouterr().err
+    for seed in (3, 4):
+        name = f"sample_{seed}/shear_series.csv"
+        assert (tmp_path / "early" / name).read_text() == (tmp_path / "batch" / name).read_text()
 
     scenario, _ = micro_run
     assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "no"), "--batch"]) == 2
