@@ -269,6 +269,18 @@ def shown_differences(changed: list, limit: int = 6) -> str:
 
 # --- shared checks ---------------------------------------------------------------------------
 def _now_iso() -> str:
+    """The files' `created` time (UTC): now, or SOURCE_DATE_EPOCH (seconds since 1970, the
+    reproducible-builds convention) when it is set, so that the same run writes the same bytes
+    (a check by checksum, `h5diff` of the attributes, a build cache). A value that is not a
+    whole number of seconds is refused, naming it."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch:
+        try:
+            stamp = datetime.datetime.fromtimestamp(int(epoch), datetime.timezone.utc)
+        except (ValueError, OverflowError, OSError):
+            raise ValueError(f"SOURCE_DATE_EPOCH={epoch!r}: expected whole seconds since "
+                             "1970-01-01 UTC") from None
+        return stamp.isoformat(timespec="seconds")
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 

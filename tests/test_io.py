@@ -678,3 +678,22 @@ def test_each_frame_records_its_time_unit(tmp_path):
     with h5py.File(path, "r") as f:
         assert [f["frames"][name].attrs["time_units"] for name in ("000000", "000001")] == ["s", "s"]
 
+
+
+def test_source_date_epoch_fixes_the_files_creation_time(tmp_path, monkeypatch):
+    """The `created` attribute made every file of two identical runs differ in its bytes
+    (the determinism audit of session 48); SOURCE_DATE_EPOCH fixes it, as reproducible builds
+    do, and a malformed one is refused by name."""
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for k, path in enumerate(paths):
+        if k:
+            time.sleep(1.05)        # another second on the clock
+        io.save_checkpoint(path, {"x": np.arange(4.0)}, {"step": 3})
+    with h5py.File(paths[0], "r") as f:
+        assert f.attrs["created"] == "2023-11-14T22:13:20+00:00"
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    with pytest.raises(ValueError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
+        io.save_checkpoint(tmp_path / "c.h5", {"x": np.arange(4.0)}, {"step": 3})
+    assert not (tmp_path / "c.h5").exists()
