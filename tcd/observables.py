@@ -28,6 +28,21 @@ def kinetic_energy_of(v, w, inv_mass, inv_inertia) -> float:
     return float(0.5 * np.sum(m * np.sum(v**2, axis=1)) + 0.5 * np.sum(inertia * np.sum(w**2, axis=1)))
 
 
+def spin_about_axis(x, v, w, inv_mass, inv_inertia, centre=(0.0, 0.0)) -> float:
+    """The free bodies' rotation about the vertical axis through `centre` (x, y), as one rigid
+    body would turn with their angular momentum about it (rad/s, counterclockwise seen from
+    above): L_z / I_z, with L_z = sum m ((x - c) x v)_z + I w_z and I_z = sum m rho^2 + I
+    (rho the distance from the axis; a sphere's own inertia I about its centre). 0 when no
+    body is free."""
+    inv_mass, inv_inertia = np.asarray(inv_mass, float), np.asarray(inv_inertia, float)
+    m = np.divide(1.0, inv_mass, out=np.zeros_like(inv_mass), where=inv_mass > 0)
+    inertia = np.divide(1.0, inv_inertia, out=np.zeros_like(inv_inertia), where=inv_inertia > 0)
+    dx, dy = x[:, 0] - centre[0], x[:, 1] - centre[1]
+    lz = np.sum(m * (dx * v[:, 1] - dy * v[:, 0])) + np.sum(inertia * w[:, 2])
+    iz = np.sum(m * (dx**2 + dy**2)) + np.sum(inertia)
+    return float(lz / iz) if iz > 0 else 0.0
+
+
 def slab_volume(z, r, z0: float, z1: float) -> np.ndarray:
     """Volume of each sphere (centre height z, radius r) lying between z0 and z1 (m^3)."""
     def below(h):  # volume of the sphere below height h

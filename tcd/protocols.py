@@ -109,6 +109,12 @@ MAX_SAMPLE_OVERLAP = 0.01
 #: to 1.7e-4; the twin's below 1e-3): above it the summary warns of flung grains
 QUASI_STATIC_KINETIC_RATIO = 0.01
 
+#: the fastest turn of a sheared sample about the mould's axis before the peak, as the speed
+#: of its rim over the ring's: above it the summary warns (the study, rings of friction 0.3:
+#: at most 1.4 in its frames; `tiny.toml` with frictionless rings: 77, spinning up
+#: exponentially; session 48)
+SPIN_RIM_OVER_RING = 10.0
+
 
 class Prepare:
     """Two-course (or more) sample by pouring and vibration."""
@@ -448,7 +454,10 @@ class Shear:
                 "shear_force": float(-f_ring[0]),
                 "top_plate_shear_force": float(-sim.wall_force(3)[0]),
                 "shear_stress": float(-f_ring[0] / (math.pi * R**2)),
-                "bonds_intact": d[0], "bonds_broken_tension": d[1], "bonds_broken_shear": d[2]}
+                "bonds_intact": d[0], "bonds_broken_tension": d[1], "bonds_broken_shear": d[2],
+                # the sample's turn about the mould's axis (free with frictionless rings)
+                "spin": obs.spin_about_axis(sim.positions(), sim.velocities(),
+                                            sim.angular_velocities(), *sim.inverse_masses())}
 
     def finish(self, sim, phase, series: dict, x_start=None) -> dict:
         """Peak, residual and bond counts; with `x_start` (positions at the start of the shear)
@@ -500,14 +509,31 @@ class Shear:
             "broken_near_plane_fraction": float(near[broken].mean()) if broken.any() else 0.0,
             "particles": int(sim.n),
         }
+        warnings = []
+        if "spin" in series and len(d):
+            # up to the peak: after it a brittle cascade may fling pieces of the sample
+            spin = np.abs(np.asarray(series["spin"], dtype=float)[:k + 1])
+            out["spin_rim_over_ring_max"] = float(np.max(spin)) * phase.info["radius"] / self.velocity
+            rim = out["spin_rim_over_ring_max"]
+            if rim > SPIN_RIM_OVER_RING:
+                warnings.append(
+                    f"the sample turned about the mould's axis before the peak: its rim moved up "
+                    f"to {rim:.3g} times as fast as the ring (a quasi-static test stays below "
+                    f"{SPIN_RIM_OVER_RING:g}). Nothing holds that turn but the rings' and "
+                    "plates' friction, and the ring's push about its offset axis drives it "
+                    "(docs/physics.md, limitations): give the shear stage a wall_friction (the "
+                    "study's is 0.3), or shear slower; the stress of such a test is not the "
+                    "Leutner test's")
         ratio = out["kinetic_over_work_max"]
         if ratio > QUASI_STATIC_KINETIC_RATIO:
-            out["warnings"] = [
+            warnings += [
                 f"the grains' kinetic energy reached {ratio:.3g} of the walls' work (a "
                 f"quasi-static shear stays below {QUASI_STATIC_KINETIC_RATIO:g}): the drive is "
                 "fast for this sample, the sample had not settled, or grains were flung (a "
                 "bonded grain free to roll needs F H^2 / (m L) below 5.6: docs/physics.md, "
                 "limitations)"]
+        if warnings:
+            out["warnings"] = warnings
         if x_start is not None:
             travel = self.velocity * (sim.time - phase.info["t0"])
             z0 = x_start[:, 2]

@@ -994,7 +994,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
 
 SERIES_UNITS = {"time": "s", "displacement": "m", "shear_force": "N", "shear_stress": "Pa",
                 "kinetic_energy": "J", "top_plate_force": "N", "top_plate_z": "m",
-                "top_plate_shear_force": "N"}
+                "top_plate_shear_force": "N", "spin": "rad/s"}
 
 
 def _print_warnings(seed: int, numbers: dict) -> None:

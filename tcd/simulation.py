@@ -1557,6 +1557,10 @@ class SystemView:
     def radii(self):
         return self.reads("radius", self.batch.radii)[self.slice].copy()
 
+    def inverse_masses(self) -> tuple[np.ndarray, np.ndarray]:
+        inv_mass, inv_inertia = self.batch.inverse_masses()
+        return inv_mass[self.slice].copy(), inv_inertia[self.slice].copy()
+
     def wall_force(self, k: int) -> np.ndarray:
         force = self.reads("wall_force",
                            lambda: self.batch.wall_fields.force.to_numpy().astype(float))

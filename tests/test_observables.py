@@ -171,3 +171,31 @@ def test_study_statistics_do_not_depend_on_the_order_of_the_samples():
     assert obs.study_statistics(samples[::-1]) == forward
     assert obs.study_statistics(samples[2:] + samples[:2]) == forward
     assert forward[0]["tau_peak_MPa"] == float(np.mean(values))     # the seeds' order
+
+
+def test_spin_about_axis_is_the_rigid_rotation_of_the_bodies():
+    """A rigid rotation at omega about a vertical axis through c (orbits and the bodies' own
+    spins) reads omega; a translation reads 0; a kinematic body does not count."""
+    rng = np.random.default_rng(3)
+    n = 50
+    x = rng.uniform(-0.02, 0.02, (n, 3))
+    r = rng.uniform(1e-3, 3e-3, n)
+    m = 2600 * 4 / 3 * np.pi * r**3
+    inv_m, inv_i = 1 / m, 1 / (0.4 * m * r**2)
+    c, omega = (0.004, -0.002), 3.7
+    v = np.zeros((n, 3))
+    v[:, 0], v[:, 1] = -omega * (x[:, 1] - c[1]), omega * (x[:, 0] - c[0])
+    w = np.tile([0.0, 0.0, omega], (n, 1))
+    assert obs.spin_about_axis(x, v, w, inv_m, inv_i, c) == pytest.approx(omega, rel=1e-12)
+    # orbits alone: the bodies' own inertia about their centres counts in I_z, not in L_z
+    got = obs.spin_about_axis(x, v, 0 * w, inv_m, inv_i, c)
+    rho2 = (x[:, 0] - c[0])**2 + (x[:, 1] - c[1])**2
+    assert got == pytest.approx(omega * np.sum(m * rho2) / (np.sum(m * rho2) + np.sum(1 / inv_i)))
+    assert obs.spin_about_axis(x, v + [0.3, -0.1, 0.2], w, inv_m, inv_i, c) != pytest.approx(omega)
+    moving = np.tile([0.3, -0.1, 0.2], (n, 1))        # a translation, about the mass centre
+    com = np.sum(m[:, None] * x, axis=0) / np.sum(m)
+    assert abs(obs.spin_about_axis(x, moving, 0 * w, inv_m, inv_i, com[:2])) < 1e-12
+    inv_m[0] = inv_i[0] = 0.0          # kinematic: driven, infinite mass
+    v2 = v.copy()
+    v2[0] = [50.0, 50.0, 0.0]
+    assert obs.spin_about_axis(x, v2, w, inv_m, inv_i, c) == pytest.approx(omega, rel=1e-12)

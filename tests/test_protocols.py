@@ -93,13 +93,19 @@ def test_shear_record_moves_at_50_mm_per_min_and_divides_by_pi_R2():
     scn = parse_scenario(PAPER)
     shear = Shear(scn.stages[1], scn, 1)
     forces = {2: np.array([-1000.0, 0.0, 0.0]), 3: np.zeros(3)}
+    # two grains of 1 kg orbiting the axis at 2 rad/s, 1 and 2 cm from it
+    x = np.array([[0.01, 0.0, 0.05], [0.0, -0.02, 0.05]])
+    v = np.array([[0.0, 0.02, 0.0], [0.04, 0.0, 0.0]])
     sim = types.SimpleNamespace(time=70.0, wall_force=lambda k: forces[k],
-                                bonds_state_counts=lambda: (5, 0, 0))
+                                bonds_state_counts=lambda: (5, 0, 0), positions=lambda: x,
+                                velocities=lambda: v, angular_velocities=lambda: 0 * v,
+                                inverse_masses=lambda: (np.ones(2), np.zeros(2)))
     phase = types.SimpleNamespace(info={"radius": 0.075, "t0": 10.0})
     rec = shear.record(sim, phase)
     assert rec["displacement"] == pytest.approx(0.05, rel=1e-12)
     assert rec["shear_force"] == pytest.approx(1000.0, rel=1e-12)
     assert rec["shear_stress"] == pytest.approx(56588.0, rel=1e-4)
+    assert rec["spin"] == pytest.approx(2.0, rel=1e-12)
 
 
 def test_shear_rings_split_at_mid_height_with_the_gap_centred_and_the_upper_ring_moving():
