@@ -155,9 +155,8 @@ def _pair_data(frame, group, h):
     normal = d / np.where(length > 0, length, 1.0)[:, None]
     rn = np.einsum("ij,ij->i", imp, normal)
     rt = np.linalg.norm(imp - rn[:, None] * normal, axis=1)
-    data = {"impulse": imp, "normal_impulse": rn}
+    data = {"impulse": imp, "normal_impulse": rn, "tangential_impulse": rt}
     if group == "contacts":
-        data["tangential_impulse"] = rt
         if "contacts/gap" in frame:
             data["gap"] = np.asarray(frame["contacts/gap"])[keep]
     else:

@@ -87,6 +87,7 @@ def test_bonds_carry_state_and_impulse_per_frame(states, tmp_path):
         np.testing.assert_array_equal(m.cell_data["intact"][0], [s == 0 for s in state])
     # bond 0-3 lies along y, its impulse (0, 3, 0) is all normal; bond 1-2 along x
     np.testing.assert_allclose(m.cell_data["normal_impulse"][0], [3.0, 1.0])
+    np.testing.assert_allclose(m.cell_data["tangential_impulse"][0], [0.0, 0.0], atol=1e-15)
     np.testing.assert_allclose(m.cell_data["normal_force"][0], [3.0 / H, 1.0 / H])
 
 
