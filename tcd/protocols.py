@@ -426,6 +426,10 @@ class Shear:
         if not moulds:
             problems.append("the sample has no cylindrical mould among its walls (the rings take "
                             "its radius)")
+        if len(r) and c.gap_mm * 1e-3 >= 2.0 * float(np.min(r)):
+            problems.append(f"shear gap_mm {c.gap_mm:g} mm is not smaller than the sample's "
+                            f"smallest grain ({2e3 * float(np.min(r)):.3g} mm across): grains "
+                            "would be squeezed out between the rings")
         if not plates:
             problems.append("the sample has no top plate (a plane facing down) among its walls")
         if problems:

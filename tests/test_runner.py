@@ -938,6 +938,11 @@ def test_every_seeds_sample_is_checked_before_the_first_seed_runs(micro_run, tmp
         # when that seed's turn came, one with a NumPy message naming neither file nor seed)
         "no_mould": (arrays, r"\(seed 4\): the sample has no cylindrical mould",
                      {**meta, "walls": [w for w in meta["walls"] if w["kind"] != "cylinder"]}),
+        # grains that fit through the gap between the rings (the user audit of session 48:
+        # grains of 0.8 mm, a 3 mm gap, squeezed 1.4 mm out of the mould, nothing said)
+        "small_grains": ({**arrays, "particles/radius": arrays["particles/radius"] * 0 + 1e-4},
+                         r"\(seed 4\): shear gap_mm 0.3 mm is not smaller than the sample's "
+                         r"smallest grain \(0.2 mm across\): grains would be squeezed out"),
         "narrow_mould": (arrays, r"\(seed 4\): shear displacement_mm 0.2 mm is not smaller than "
                                  r"the sample's 0.2 mm diameter",
                          {**meta, "walls": [{**w, "radius": 1e-4} if w["kind"] == "cylinder" else w
