@@ -669,6 +669,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
             numbers, attrs = _shear_numbers(protos[seed], view, phases[k], arrays, states,
                                             res.get("stage_first_frame", {}).get("0"))
             _print_warnings(seed, numbers)
+            numbers.update(solver_numbers(arrays, batch.settings.max_sweeps))
             numbers["wall_time_s"] = wall
             numbers["steps"] = int(step_in_phase)
             res["stages"]["0:shear"] = numbers
@@ -970,6 +971,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
             numbers = proto.finish(sim, stage_phases)
             attrs = {}
         _print_warnings(seed, numbers)
+        numbers.update(solver_numbers(arrays, sim.settings.max_sweeps))
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(sum(rec["steps"] for rec in result.get("phases", [])
                                    if rec.get("stage_index", stage_idx) == stage_idx
@@ -1019,6 +1021,19 @@ def _shear_numbers(proto, sim, phase, arrays: dict, states, first_frame) -> tupl
     attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
              "smoothing_window": proto.cfg.smoothing_window_mm * 1e-3}
     return numbers, attrs
+
+
+def solver_numbers(arrays: dict, max_sweeps: int) -> dict:
+    """How well a stage's steps converged, from its series (every step's at series_every = 1,
+    else those recorded): `recorded_steps`, `steps_at_sweep_cap` (the steps that stopped at
+    max_sweeps, their residual above the tolerance) and `largest_residual`."""
+    sweeps = np.asarray(arrays.get("sweeps", []), dtype=float)
+    residual = np.asarray(arrays.get("residual", []), dtype=float)
+    out = {"recorded_steps": int(len(sweeps)),
+           "steps_at_sweep_cap": int(np.count_nonzero(sweeps >= max_sweeps))}
+    if residual.size and np.any(np.isfinite(residual)):
+        out["largest_residual"] = float(np.nanmax(residual))
+    return out
 
 
 def _write_series(sample_dir: pathlib.Path, kind: str, arrays: dict, attrs: dict) -> None:

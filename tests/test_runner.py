@@ -284,6 +284,21 @@ def test_a_study_split_with_seeds_into_one_folder_sums_up_every_finished_sample(
     assert summary["std"]["tau_peak_MPa"] == pytest.approx(0.5 * tau3)
 
 
+def test_each_stage_reports_its_steps_at_the_sweep_cap(micro_run):
+    """A stage's summary counts the steps that stopped at max_sweeps and its largest residual
+    (the user audit of session 48: a third of a preparation's steps at the cap, unsaid)."""
+    _, out = micro_run
+    res = json.loads((out / "sample_3" / "summary.json").read_text())
+    for key, kind in (("0:prepare", "prepare"), ("1:shear", "shear")):
+        series = io.read_series(out / "sample_3" / f"{kind}_series.h5")
+        numbers = res["stages"][key]
+        sweeps = np.asarray(series["sweeps"])
+        assert numbers["recorded_steps"] == len(sweeps) == numbers["steps"]
+        assert numbers["steps_at_sweep_cap"] == int(np.count_nonzero(sweeps >= 500))
+        assert numbers["largest_residual"] == float(np.max(series["residual"]))
+    assert res["stages"]["0:prepare"]["steps_at_sweep_cap"] > 0     # the micro run's jammed bed
+
+
 def test_resume_without_checkpoint_is_refused(tmp_path):
     scenario = tmp_path / "micro.toml"
     scenario.write_text(MICRO)
