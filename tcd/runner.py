@@ -808,6 +808,14 @@ def _finished_samples(out: pathlib.Path, exclude) -> list[dict]:
     return found
 
 
+def stage_sizes(stage) -> str:
+    """What a prepare stage will pour: its courses' sphere counts and mould, in words."""
+    counts = [(course, stage.layer_particle_count(course)) for course in stage.courses]
+    return (" + ".join(f"{n} {course}" for course, n in counts) + f" spheres "
+            f"({sum(n for _, n in counts)} in all, sizes x {stage.size_scale:g}) in a "
+            f"{stage.cylinder_diameter_mm:g} mm mould, layers of {stage.layer_height_mm:g} mm")
+
+
 def next_snapshot_after(t: float, every: float) -> float:
     """The time of the next snapshot after one written at `t`: the next multiple of `every`
     (a run that starts from a sample at t > 0 writes no burst of frames to catch up, and a
@@ -902,6 +910,10 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         t_stage = time.perf_counter() - result["wall_time_s"].get(f"{stage_idx}:{stage.kind}", 0.0)
         while True:
             if phase is None:
+                if stage.kind == "prepare" and phase_idx == 0 and progress:
+                    # before the first course is generated (seconds to minutes for millions)
+                    print(f"[tcd] seed {seed} prepare: {stage_sizes(stage)}", file=sys.stderr,
+                          flush=True)
                 phase, sim = proto.plan(phase_idx, sim, sim.time if sim is not None else 0.0)
                 if phase is None:
                     break
