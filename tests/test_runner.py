@@ -1062,6 +1062,12 @@ def test_preparation_shortfalls_are_named():
     assert "the largest overlap is 251 % of the smallest diameter, above 1 %" in found[0]
     assert "4 grain(s) ended outside the mould" in found[1] and len(found) == 2
     assert "above 1 %" in proto.shortfalls([], 8.0, float("nan"), 0)[0]
+    # a loose sample (the user audit of session 48: 0.252 for a target of 0.587, unsaid)
+    assert proto.shortfalls([], 8.0, 0.0, 0, 0.54, 7.9) == []
+    [loose] = proto.shortfalls([], 8.0, 0.0, 0, 0.252, 5.94)
+    assert loose.startswith("the sample's packing fraction is 0.252, well below "
+                            "packing_fraction 0.587; its highest grain reaches 5.94 mm under "
+                            "the plate at 8.00 mm"), loose
 
 
 def test_a_run_records_whether_each_settling_phase_settled(micro_run):
