@@ -278,7 +278,7 @@ def _scenario_of(run_dir: Path) -> dict | None:
         return None
     try:
         data = parse_scenario(text, str(path), resolve_samples=False).model_dump(
-            mode="json", exclude={"text", "source"})
+            mode="json", by_alias=True, exclude={"text", "source"})
     except ScenarioError:
         try:
             data = tomllib.loads(text)
@@ -311,7 +311,7 @@ def check_one_study(run_dirs: list[Path]) -> None:
                           f"{first} and {other} ran the same scenario", FigureWarning,
                           stacklevel=3)
         else:
-            changed = io.differences(reference, scenario)
+            changed = io.differences(reference, scenario, base=1)
             if changed:
                 raise ValueError(f"{other} ran another scenario than {first} "
                                  f"({io.shown_differences(changed)}): its samples are not part "

@@ -245,18 +245,20 @@ def write_json(path, obj) -> None:
             fh.write(text + "\n")
 
 
-def differences(old, new, prefix="") -> list:
+def differences(old, new, prefix="", base: int = 0) -> list:
     """Every leaf where two JSON-like values differ, as ``"a.b[2]: old -> new"`` lines (dicts
-    key by key, lists of equal length item by item); [] when they are equal."""
+    key by key, lists of equal length item by item, numbered from `base`: 1 for scenario keys,
+    as the scenario's own errors name them); [] when they are equal."""
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k in sorted(set(old) | set(new), key=str):
-            out += differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
+            out += differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k),
+                               base)
         return out
     if isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
         out = []
         for k, (a, b) in enumerate(zip(old, new)):
-            out += differences(a, b, f"{prefix}[{k}]")
+            out += differences(a, b, f"{prefix}[{k + base}]", base)
         return out
     return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
 

@@ -212,7 +212,7 @@ def _scenario_record(scenario) -> dict:
     the seeds (a sample's numbers depend on its seed only), the description, the file's
     text and path (the backend is checked against run.json) and the wall-clock spacing of
     the checkpoints (`output.checkpoint_every_s`, which changes no number or frame)."""
-    return scenario.model_dump(mode="json", exclude={
+    return scenario.model_dump(mode="json", by_alias=True, exclude={
         "text": True, "source": True, "seeds": True, "backend": True, "description": True,
         "output": {"checkpoint_every_s"}})
 
@@ -229,7 +229,7 @@ def scenario_changes(text: str, scenario, where: str) -> list:
         reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
         raise ValueError(f"{where}: the scenario this run started with cannot be read back "
                          f"({reasons}); resume is refused") from None
-    return io.differences(_scenario_record(first), _scenario_record(scenario))
+    return io.differences(_scenario_record(first), _scenario_record(scenario), base=1)
 
 
 LOCK_FILE = ".tcd.lock"

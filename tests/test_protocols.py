@@ -153,8 +153,10 @@ def test_shear_finish_residual_at_the_end_and_near_plane_band_a_quarter_ring():
           "bonds/j": np.array([1, 3, 7, 5, 5]),
           "bonds/broken_pos": np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, z_i - 0.005],
                                         [0, 0, z_i - 0.025]], dtype=float)}
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, radii=lambda: r, n=8)
-    phase = types.SimpleNamespace(info={"z_interface": z_i, "sample_height": 0.12})
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, radii=lambda: r, n=8,
+                                time=0.0)
+    phase = types.SimpleNamespace(info={"z_interface": z_i, "sample_height": 0.12,
+                                        "radius": 0.075, "t0": 0.0})
     d = np.linspace(0, 2.5e-3, 51)
     # a rise to 1 MPa at 1 mm, then a drop to a 0.3 MPa plateau: the residual is its end
     tau = np.where(d <= 1e-3, 1e6 * d / 1e-3, np.where(d < 1.5e-3, 1e6, 0.3e6))
@@ -176,8 +178,10 @@ def test_a_shear_whose_kinetic_energy_nears_the_walls_work_is_flagged():
     shear = Shear(scn.stages[1], scn, 1)
     st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
           "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: np.zeros((2, 3)), n=2)
-    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12})
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: np.zeros((2, 3)), n=2,
+                                radii=lambda: np.full(2, 0.001), time=3.0)
+    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
+                                        "radius": 0.075, "t0": 0.0})
     d = np.linspace(0, 2.5e-3, 51)
     force = np.full(51, 100.0)                   # 100 N over 2.5 mm: 0.25 J of work
     for ke, flagged in ((2.4e-3, False), (2.6e-3, True), (0.2, True)):
@@ -189,6 +193,28 @@ def test_a_shear_whose_kinetic_energy_nears_the_walls_work_is_flagged():
         assert ("warnings" in out) == flagged, ke
         if flagged:
             assert f"reached {ke / 0.25:.3g} of the walls' work" in out["warnings"][0]
+
+
+def test_grains_squeezed_out_between_the_rings_are_counted_and_named():
+    """A gap wider than the smallest grains let them out of the mould, unsaid (the user audit
+    of session 48). Rings of 75 mm, the upper one 2.5 mm along x: a grain above the plane at
+    x = 77 mm is inside the upper ring (76.0 < 77.5), one at y = 76 mm is out of it, one below
+    the plane at x = 76 mm is out of the lower ring."""
+    scn = parse_scenario(PAPER)
+    shear = Shear(scn.stages[1], scn, 1)
+    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
+          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
+    x = np.array([[0.077, 0.0, 0.07], [0.0, 0.076, 0.07], [0.076, 0.0, 0.05], [0.0, 0.0, 0.05]])
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, n=4,
+                                radii=lambda: np.full(4, 0.0004), time=3.0)
+    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
+                                        "radius": 0.075, "t0": 0.0})
+    d = np.linspace(0, 2.5e-3, 51)
+    out = shear.finish(sim, phase, {"displacement": d, "shear_stress": np.full(51, 1e5)})
+    assert out["outside"] == 2
+    assert out["warnings"] == ["2 grain(s) ended outside the rings (their centres beyond the "
+                               "75 mm radius): squeezed out through the 1 mm gap between the "
+                               "rings, which the smallest grains (0.8 mm across) fit through"]
 
 
 def test_prepared_layers_packing_fractions_average_to_the_sample_s():
