@@ -683,6 +683,9 @@ def main(argv=None) -> int:
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
     try:
+        if os.environ.get("SOURCE_DATE_EPOCH", "").strip():    # refused now, not at a write
+            from . import io
+            io.created_time()
         return args.handler(args)
     except BrokenPipeError:
         # the reader went away (`tcd info FILE | head`): stop quietly, as Unix tools do

@@ -270,7 +270,7 @@ def shown_differences(changed: list, limit: int = 6) -> str:
 
 
 # --- shared checks ---------------------------------------------------------------------------
-def _now_iso() -> str:
+def created_time() -> str:
     """The files' `created` time (UTC): now, or SOURCE_DATE_EPOCH (seconds since 1970, the
     reproducible-builds convention) when it is set, so that the same run writes the same bytes
     (a check by checksum, `h5diff` of the attributes, a build cache). A value that is not a
@@ -298,7 +298,7 @@ def _write_header(f: h5py.File, kind: str, tcd_version: str = "") -> None:
     f.attrs["schema_version"] = SCHEMA_VERSION
     f.attrs["tcd_file"] = kind
     f.attrs["tcd_version"] = _default_version(tcd_version)
-    f.attrs["created"] = _now_iso()
+    f.attrs["created"] = created_time()
 
 
 def _check_dataset_key(key, where: str, *, need_group: bool) -> str:

@@ -111,7 +111,7 @@ QUASI_STATIC_KINETIC_RATIO = 0.01
 
 #: the fastest turn of a sheared sample about the mould's axis before the peak, as the speed
 #: of its rim over the ring's: above it the summary warns (the study, rings of friction 0.3:
-#: at most 1.4 in its frames; `tiny.toml` with frictionless rings: 77, spinning up
+#: at most 1.4 in its frames; `tiny.toml` with frictionless rings: 130, spinning up
 #: exponentially; session 48)
 SPIN_RIM_OVER_RING = 10.0
 
@@ -558,10 +558,9 @@ class Shear:
         out["outside"] = int(np.count_nonzero(rho > R))
         if out["outside"]:
             warnings.append(f"{out['outside']} grain(s) ended outside the rings (their centres "
-                            f"beyond the {1e3 * R:g} mm radius): squeezed out through the "
-                            f"{c.gap_mm:g} mm gap between the rings, which the smallest grains "
-                            f"({2e3 * float(np.min(r)):.3g} mm across) "
-                            f"{'fit through' if c.gap_mm * 1e-3 >= 2 * float(np.min(r)) else 'nearly fit'}")
+                            f"beyond the {1e3 * R:g} mm radius), squeezed out between them: the "
+                            f"gap is {c.gap_mm:g} mm, the smallest grains "
+                            f"{2e3 * float(np.min(r)):.3g} mm across (keep gap_mm below it)")
             out["warnings"] = warnings
         if x_start is not None:
             z0 = x_start[:, 2]

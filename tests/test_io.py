@@ -697,3 +697,11 @@ def test_source_date_epoch_fixes_the_files_creation_time(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="SOURCE_DATE_EPOCH='yesterday': expected whole seconds"):
         io.save_checkpoint(tmp_path / "c.h5", {"x": np.arange(4.0)}, {"step": 3})
     assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_malformed_source_date_epoch_is_refused_before_a_command_runs(tmp_path, monkeypatch,
+                                                                        capsys):
+    from tcd import cli
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "soon")
+    assert cli.main(["info", str(tmp_path / "none.h5")]) == 2
+    assert "SOURCE_DATE_EPOCH='soon': expected whole seconds" in capsys.readouterr().err

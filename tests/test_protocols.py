@@ -213,8 +213,8 @@ def test_grains_squeezed_out_between_the_rings_are_counted_and_named():
     out = shear.finish(sim, phase, {"displacement": d, "shear_stress": np.full(51, 1e5)})
     assert out["outside"] == 2
     assert out["warnings"] == ["2 grain(s) ended outside the rings (their centres beyond the "
-                               "75 mm radius): squeezed out through the 1 mm gap between the "
-                               "rings, which the smallest grains (0.8 mm across) fit through"]
+                               "75 mm radius), squeezed out between them: the gap is 1 mm, the "
+                               "smallest grains 0.8 mm across (keep gap_mm below it)"]
 
 
 def test_prepared_layers_packing_fractions_average_to_the_sample_s():
