@@ -403,3 +403,25 @@ def test_a_series_of_the_wrong_shape_or_type_skips_its_sample_naming_file_and_ke
                                            f"'bonds_broken_shear' has {shown.replace('(', '.').replace(')', '.')}"):
         written = make_figures(run, out)
     assert (out / "fig4_stress_displacement.png") in written
+
+
+def test_fig4_of_a_short_test_is_drawn_over_its_own_range(tmp_path, monkeypatch):
+    """Fig. 4's axis ended at the paper's 2.5 mm whatever the test: a 0.4 mm test was a stub
+    in a corner, under the experiments' peak at 2.37 mm (the user audit of session 48). A test
+    to 2.5 mm keeps the paper's frame and markers; one past it is drawn to its end."""
+    from tcd import figures
+    drawn = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path, written: drawn.append(fig))
+
+    def curves(d_end):
+        d = np.linspace(0.0, d_end, 200)
+        tau = 2e5 * np.sin(np.pi * d / d_end)
+        return figures.SampleCurves("1", tmp_path, d, d, tau, tau, 1e-5, 2e5, d_end / 2, 100, {})
+    for d_end, xmax, markers in ((0.4e-3, 0.4, False), (2.5e-3, 2.5, True), (3.0e-3, 3.0, True)):
+        drawn.clear()
+        figures.figure_stress_displacement([curves(d_end)], tmp_path / "f.png", [], pdf=False)
+        ax = drawn[0].axes[0]
+        assert ax.get_xlim() == pytest.approx((0.0, xmax)), d_end
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert ("experiments (mean of 5 cores)" in labels) == markers, (d_end, labels)
+        assert ax.get_ylim()[1] == pytest.approx(1.12 * (0.898 if markers else 0.2), rel=1e-3), d_end
