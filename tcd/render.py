@@ -916,7 +916,7 @@ def _frame_of_state(path, frame) -> dict:
     state = load_states(path)[0][0]
     n = len(state["particles/x"])
     out = {"time": float(state.get("time", math.nan)), "step": int(state.get("step", -1)),
-           "stage": str(state.get("stage", ""))}
+           "stage": str(state.get("stage", "")), "courses": _state_courses(path)}
     for key, (dataset, empty, dtype) in _FRAME_DATASETS.items():
         if dataset in state:
             out[key] = np.asarray(state[dataset], dtype)
@@ -925,6 +925,19 @@ def _frame_of_state(path, frame) -> dict:
         else:
             out[key] = np.zeros(empty, dtype)
     return out
+
+
+def _state_courses(path):
+    """The courses of a prepared sample (its meta's `courses`, since session 48) or of a run's
+    checkpoint (its scenario's prepare stage); None when the file does not say."""
+    try:
+        meta, _ = io.checkpoint_meta(path)
+    except (OSError, ValueError):
+        return None
+    courses = meta.get("courses")
+    if isinstance(courses, list) and courses and all(isinstance(c, str) for c in courses):
+        return tuple(courses)
+    return scenario_courses(str(meta.get("scenario_text", "")))
 
 
 def _decode(value):

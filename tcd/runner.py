@@ -995,7 +995,9 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
             io.save_checkpoint(sample_dir / "prepared.h5", sim.state_dict(),
                                {"walls": [w.to_dict() for w in sim.walls], "time": sim.time,
                                 "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
-                                "phases": stage_phases})
+                                "phases": stage_phases,
+                                # which course each layer id is (a render names them)
+                                "courses": list(stage.courses)})
         _append_last_frame(states, sim, stage.kind, scn.text)       # and its last
         series = {}
         stage_idx += 1

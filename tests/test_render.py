@@ -235,6 +235,26 @@ def test_a_prepared_sample_renders_as_a_file_of_one_frame(states, tmp_path):
     assert np.array_equal(iio.imread(a)[10:], iio.imread(b)[10:])
 
 
+def test_a_prepared_sample_names_its_layers_by_its_own_courses(states, tmp_path):
+    """A sample of the surface course alone was labelled "binder course": a prepared sample
+    did not say which course each layer id was (the user audit of session 48). Its meta now
+    does, and a run's checkpoint says it through its scenario."""
+    from tcd import io
+    frame = {k: v for k, v in h5_frame(states, 2).items()}
+    frame["particles/layer"] = np.zeros_like(frame["particles/layer"])
+    plain = tmp_path / "plain.h5"
+    io.save_checkpoint(plain, frame, {"time": 0.2})
+    assert [label for label, _ in render.layer_legend(render.load_frame(plain))] == ["binder course"]
+    own = tmp_path / "surface_only.h5"
+    io.save_checkpoint(own, frame, {"time": 0.2, "courses": ["surface"]})
+    assert render.load_frame(own)["courses"] == ("surface",)
+    assert [label for label, _ in render.layer_legend(render.load_frame(own))] == ["surface course"]
+    ck = tmp_path / "checkpoint.h5"
+    io.save_checkpoint(ck, frame, {"time": 0.2, "scenario_text":
+                                   '[[stage]]\nkind = "prepare"\ncourses = ["surface", "binder"]\n'})
+    assert render.load_frame(ck)["courses"] == ("surface", "binder")
+
+
 def h5_frame(path, k):
     """Frame k of a states file as the flat dict of arrays it was written from."""
     out = {}

@@ -1384,3 +1384,9 @@ def test_a_preparation_says_what_it_will_pour_before_it_starts(tmp_path):
     assert runner.stage_sizes(big.stages[0]).startswith(
         f"{counts[0]} binder + {counts[1]} surface spheres ({sum(counts)} in all")
     assert 5000 < sum(counts) < 6500          # the paper's sample: about 5200 (5857 here)
+
+
+def test_a_prepared_sample_records_its_courses(micro_run):
+    _, out = micro_run
+    meta, _ = io.checkpoint_meta(out / "sample_3" / "prepared.h5")
+    assert meta["courses"] == ["binder", "surface"]
