@@ -217,6 +217,35 @@ def test_grains_squeezed_out_between_the_rings_are_counted_and_named():
                                "smallest grains 0.8 mm across (keep gap_mm below it)"]
 
 
+def test_a_sample_turning_about_the_mould_s_axis_is_flagged():
+    """Frictionless rings let a sheared sample turn as a whole (session 48: `tiny.toml`'s rim
+    23 times as far as the ring moved). The summary gives the spin's largest value and the
+    turn by the peak, both over the ring's, and warns when the rim turned farther than the
+    ring moved; a brief spike (bonds breaking) turns the rim little and is not flagged."""
+    scn = parse_scenario(PAPER)
+    shear = Shear(scn.stages[1], scn, 1)
+    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
+          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: np.zeros((2, 3)), n=2,
+                                radii=lambda: np.full(2, 0.001), time=3.0)
+    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
+                                        "radius": 0.075, "t0": 0.0})
+    t = np.linspace(0.0, 3.0, 301)
+    d = t * 50e-3 / 60.0                         # 2.5 mm at 50 mm/min
+    tau = np.where(d < 2e-3, d / 2e-3, 1.0) * 1e6      # the peak at the end (d = 2.5 mm)
+    ring = 50e-3 / 60.0 / 0.075                  # the spin whose rim moves at the ring's speed
+    for spin, turn, flagged in ((np.full(301, 1.2 * ring), 1.2, True),
+                                (np.full(301, 0.8 * ring), 0.8, False),
+                                (np.where(np.arange(301) == 150, 50 * ring, 0.0), 50 * 0.01 / 3.0, False)):
+        out = shear.finish(sim, phase, {"displacement": d, "shear_stress": tau, "time": t,
+                                        "spin": spin})
+        assert out["turn_rim_over_ring"] == pytest.approx(turn, rel=1e-9)
+        assert out["spin_rim_over_ring_max"] == pytest.approx(np.max(spin) / ring, rel=1e-12)
+        assert ("warnings" in out) == flagged, turn
+        if flagged:
+            assert f"its rim moved {turn:.3g} times as far as the ring" in out["warnings"][0]
+
+
 def test_prepared_layers_packing_fractions_average_to_the_sample_s():
     """Prepare.finish on a stub: the per-layer packing fractions are each layer's slab (bottom
     plate, equal-volume interface, top plate), so weighted by the slab heights they average to

@@ -118,8 +118,9 @@ def test_twin_shear_is_quasi_static(twin):
     assert shear["wall_work_J"] > 0
     assert shear["kinetic_over_work_max"] < 0.01
     # nor does it turn about the mould's axis: with frictionless rings it spun up to 30 times
-    # the ring's speed at its rim before the peak (session 48)
-    assert shear["spin_rim_over_ring_max"] < 5.0        # 1.96 in session 48
+    # the ring's speed at its rim before the peak (session 48); with the rings' friction its
+    # rim turns 0.0068 of the ring's travel by the peak
+    assert shear["turn_rim_over_ring"] < 0.1
     assert "warnings" not in shear, shear.get("warnings")
 
 
