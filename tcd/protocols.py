@@ -111,7 +111,7 @@ QUASI_STATIC_KINETIC_RATIO = 0.01
 
 #: how far a sheared sample may turn about the mould's axis before the peak, as the distance
 #: its rim moved over the ring's travel, before the summary warns (session 48: the study,
-#: rings of friction 0.3, 0.005; `tiny.toml` with frictionless rings 23, spinning up
+#: rings of friction 0.3, 0.004-0.012; `tiny.toml` with frictionless rings 23, spinning up
 #: exponentially, and with friction 0.3, 0.08)
 TURN_RIM_OVER_RING = 1.0
 
@@ -534,7 +534,8 @@ class Shear:
             out["spin_rim_over_ring_max"] = float(np.max(np.abs(spin))) * R / self.velocity
             # how far the rim turned (the spin integrated by trapezoids) over how far the ring
             # moved: the instantaneous spin has brief spikes as bonds break (the study's: up
-            # to 8 ring speeds), the turn they make is small (0.5 % of the ring's travel)
+            # to 7 ring speeds by the peak), the turn they make is small (0.4-1.2 % of the
+            # ring's travel)
             turn = np.concatenate([[0.0], np.cumsum(0.5 * (spin[1:] + spin[:-1]) * np.diff(t))])
             travel = max(float(d[k]), float(d[-1]), 1e-300)
             out["turn_rim_over_ring"] = float(np.max(np.abs(turn))) * R / travel
