@@ -169,19 +169,25 @@ def test_shear_finish_residual_at_the_end_and_near_plane_band_a_quarter_ring():
     assert (out["bonds_broken_tension"], out["bonds_broken_shear"]) == (1, 1)
 
 
+def _bondless_shear(x, radius=0.001):
+    """The paper's shear stage and a stub of its simulation 3 s in (the ring moved 2.5 mm):
+    grains at `x` of one `radius`, no bonds; the phase of a 75 mm mould split at 60 mm."""
+    scn = parse_scenario(PAPER)
+    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
+          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
+    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, n=len(x),
+                                radii=lambda: np.full(len(x), radius), time=3.0)
+    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
+                                        "radius": 0.075, "t0": 0.0})
+    return Shear(scn.stages[1], scn, 1), sim, phase
+
+
 def test_a_shear_whose_kinetic_energy_nears_the_walls_work_is_flagged():
     """A quasi-static shear keeps its grains' kinetic energy far below the walls' work (the
     study's: at most 2.9e-4 of it); a grain flung by the instability of docs/physics.md's known
     limitations shows as a ratio near 1. Above 0.01 the stage's numbers carry a warning
     (session 44), which `tcd run` prints."""
-    scn = parse_scenario(PAPER)
-    shear = Shear(scn.stages[1], scn, 1)
-    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
-          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: np.zeros((2, 3)), n=2,
-                                radii=lambda: np.full(2, 0.001), time=3.0)
-    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
-                                        "radius": 0.075, "t0": 0.0})
+    shear, sim, phase = _bondless_shear(np.zeros((2, 3)))
     d = np.linspace(0, 2.5e-3, 51)
     force = np.full(51, 100.0)                   # 100 N over 2.5 mm: 0.25 J of work
     for ke, flagged in ((2.4e-3, False), (2.6e-3, True), (0.2, True)):
@@ -200,15 +206,8 @@ def test_grains_squeezed_out_between_the_rings_are_counted_and_named():
     of session 48). Rings of 75 mm, the upper one 2.5 mm along x: a grain above the plane at
     x = 77 mm is inside the upper ring (76.0 < 77.5), one at y = 76 mm is out of it, one below
     the plane at x = 76 mm is out of the lower ring."""
-    scn = parse_scenario(PAPER)
-    shear = Shear(scn.stages[1], scn, 1)
-    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
-          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
     x = np.array([[0.077, 0.0, 0.07], [0.0, 0.076, 0.07], [0.076, 0.0, 0.05], [0.0, 0.0, 0.05]])
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: x, n=4,
-                                radii=lambda: np.full(4, 0.0004), time=3.0)
-    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
-                                        "radius": 0.075, "t0": 0.0})
+    shear, sim, phase = _bondless_shear(x, radius=0.0004)
     d = np.linspace(0, 2.5e-3, 51)
     out = shear.finish(sim, phase, {"displacement": d, "shear_stress": np.full(51, 1e5)})
     assert out["outside"] == 2
@@ -222,14 +221,7 @@ def test_a_sample_turning_about_the_mould_s_axis_is_flagged():
     23 times as far as the ring moved). The summary gives the spin's largest value and the
     turn by the peak, both over the ring's, and warns when the rim turned farther than the
     ring moved; a brief spike (bonds breaking) turns the rim little and is not flagged."""
-    scn = parse_scenario(PAPER)
-    shear = Shear(scn.stages[1], scn, 1)
-    st = {"bonds/state": np.zeros(0, int), "bonds/i": np.zeros(0, int),
-          "bonds/j": np.zeros(0, int), "bonds/broken_pos": np.zeros((0, 3))}
-    sim = types.SimpleNamespace(state_dict=lambda: st, positions=lambda: np.zeros((2, 3)), n=2,
-                                radii=lambda: np.full(2, 0.001), time=3.0)
-    phase = types.SimpleNamespace(info={"z_interface": 0.06, "sample_height": 0.12,
-                                        "radius": 0.075, "t0": 0.0})
+    shear, sim, phase = _bondless_shear(np.zeros((2, 3)))
     t = np.linspace(0.0, 3.0, 301)
     d = t * 50e-3 / 60.0                         # 2.5 mm at 50 mm/min
     tau = np.where(d < 2e-3, d / 2e-3, 1.0) * 1e6      # the peak at the end (d = 2.5 mm)
