@@ -243,7 +243,8 @@ class Prepare:
                 "course_highest_top_mm": 1e3 * obs.layer_highest(x, r, layer)[L],
                 "plate_mm": 1e3 * float(sim.walls[2].position(sim.time)[2])}
 
-    def record(self, sim, phase) -> dict:
+    def record(self, sim, phase, motion=None) -> dict:
+        """The series row of a preparation step (`motion`, the shear's, is not needed)."""
         row = {"phase": ["pour", "vibrate", "hold", "confine"].index(phase.name),
                "layer": phase.info.get("layer", 0)}
         if len(sim.walls) > 2:
@@ -462,7 +463,9 @@ class Shear:
         if changes:
             sim.settings = dataclasses.replace(sim.settings, **changes)
 
-    def record(self, sim, phase) -> dict:
+    def record(self, sim, phase, motion=None) -> dict:
+        """The series row of a shear step; `motion`: the grains' (velocities, angular
+        velocities) when the caller has read them already (else they are read here)."""
         R = phase.info["radius"]
         f_ring = sim.wall_force(2)
         d = sim.bonds_state_counts()
@@ -472,8 +475,8 @@ class Shear:
                 "shear_stress": float(-f_ring[0] / (math.pi * R**2)),
                 "bonds_intact": d[0], "bonds_broken_tension": d[1], "bonds_broken_shear": d[2],
                 # the sample's turn about the mould's axis (free with frictionless rings)
-                "spin": obs.spin_about_axis(sim.positions(), sim.velocities(),
-                                            sim.angular_velocities(), *sim.inverse_masses())}
+                "spin": obs.spin_about_axis(sim.positions(), *(motion or (
+                    sim.velocities(), sim.angular_velocities())), *sim.inverse_masses())}
 
     def finish(self, sim, phase, series: dict, x_start=None) -> dict:
         """Peak, residual and bond counts; with `x_start` (positions at the start of the shear)

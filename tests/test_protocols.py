@@ -106,6 +106,10 @@ def test_shear_record_moves_at_50_mm_per_min_and_divides_by_pi_R2():
     assert rec["shear_force"] == pytest.approx(1000.0, rel=1e-12)
     assert rec["shear_stress"] == pytest.approx(56588.0, rel=1e-4)
     assert rec["spin"] == pytest.approx(2.0, rel=1e-12)
+    # the velocities the runner read for the kinetic energy are not read again
+    reads = types.SimpleNamespace(**{k: getattr(sim, k) for k in vars(sim)
+                                     if k not in ("velocities", "angular_velocities")})
+    assert shear.record(reads, phase, (v, 0 * v)) == rec
 
 
 def test_shear_rings_split_at_mid_height_with_the_gap_centred_and_the_upper_ring_moving():
