@@ -748,11 +748,16 @@ def load_checkpoint(path) -> tuple[dict, dict]:
         if "arrays" not in f or "meta" not in f.attrs:
             raise ValueError(f"{path}: checkpoint without 'arrays' group or 'meta' attribute")
         arrays = _datasets(f["arrays"])
-        try:
-            meta = json.loads(f.attrs["meta"])
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: its 'meta' attribute is not valid JSON ({exc})") from None
+        meta = _meta_of(f, path)
     return arrays, meta
+
+
+def _meta_of(f: h5py.File, path: str):
+    """A checkpoint's `meta` attribute, parsed (ValueError naming `path` if it is not JSON)."""
+    try:
+        return json.loads(f.attrs["meta"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: its 'meta' attribute is not valid JSON ({exc})") from None
 
 
 def figure_metadata(fmt: str) -> dict | None:
@@ -770,11 +775,9 @@ def checkpoint_meta(path) -> tuple[dict, str]:
     """(meta, created) of the checkpoint at `path`, without reading its arrays."""
     path = os.fspath(path)
     with _open_tcd(path, FILE_CHECKPOINT) as f:
-        try:
-            meta = json.loads(f.attrs["meta"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: its 'meta' attribute is missing or not JSON ({exc})") \
-                from None
+        if "meta" not in f.attrs:
+            raise ValueError(f"{path}: checkpoint without 'meta' attribute")
+        meta = _meta_of(f, path)
         if not isinstance(meta, dict):
             raise ValueError(f"{path}: its 'meta' attribute is not a JSON object")
         return meta, _attr_text(f, "created")

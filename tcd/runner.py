@@ -310,7 +310,7 @@ RECORD_FILES = ("scenario.toml", "run.json", LOCK_FILE)
 
 def _paths_in(out: pathlib.Path) -> set | None:
     """Every path under `out` (None when `out` does not exist)."""
-    return set(out.rglob("*")) if out.is_dir() else None if not out.exists() else set()
+    return set(out.rglob("*")) if out.exists() else None
 
 
 def _take_back_records(out: pathlib.Path, before: set | None) -> None:
