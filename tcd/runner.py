@@ -135,10 +135,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
             if (out / "batch_checkpoint.h5").is_file():
                 raise FileNotFoundError(f"{out}: this run was started with --batch (it has a "
                                         "batch_checkpoint.h5): resume it with --batch --resume")
-            if not (out / "scenario.toml").is_file():
+            if not _stopped_before_first_checkpoint(out):
                 raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
-            # a run stopped before its first checkpoint (a kill in its first minute): a fresh
-            # run is refused there (it holds results), so the resume starts every sample over
+            # a fresh run is refused there (it holds results): every sample starts over
             print(f"tcd: note: {out}: no checkpoint yet (the run stopped before its first): "
                   "every sample starts from the beginning", file=sys.stderr)
     t_start = time.perf_counter()
@@ -205,6 +204,15 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         summary["jobs"] = jobs
         io.write_json(out / "summary.json", summary)
         return summary
+
+
+def _stopped_before_first_checkpoint(out: pathlib.Path) -> bool:
+    """Whether `out` holds a run that stopped before its first checkpoint (a kill in its
+    first minute, or while a batch was built): its records (scenario.toml) and no checkpoint,
+    batched or not, nor any summary. Its --resume starts over."""
+    return ((out / "scenario.toml").is_file() and not (out / "batch_checkpoint.h5").exists()
+            and not any(out.glob("sample_*/checkpoint.h5"))
+            and not any(out.glob("**/summary.json")))
 
 
 def _scenario_record(scenario) -> dict:
@@ -555,12 +563,10 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     ck_path = out / "batch_checkpoint.h5"
     from_start = not resume
     if resume and not ck_path.exists():
-        if not (out / "scenario.toml").is_file() or any(out.glob("sample_*/checkpoint.h5")) \
-                or any(out.glob("**/summary.json")):
+        if not _stopped_before_first_checkpoint(out):
             raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
-        # a batch stopped while it was built (before its first checkpoint): it starts over,
-        # as an unbatched run does (run_scenario); its scenario is still checked against the
-        # one it started with
+        # a batch stopped while it was built: it starts over, as an unbatched run does
+        # (run_scenario); its scenario is still checked against the one it started with
         print(f"tcd: note: {out}: no batch checkpoint yet (the batch stopped before its first): "
               "it starts from the beginning", file=sys.stderr)
         from_start = True
