@@ -152,6 +152,8 @@ def cmd_run(args) -> int:
     scenario = load_scenario(args.scenario).with_overrides(arch=args.arch,
                                                             precision=args.precision)
     scenario = scenario.with_seeds(args.seeds)
+    for key, reason in scenario.doubts():       # values likely in another unit: run as written
+        print(f"tcd: warning: {scenario.source}: {key}: {reason}", file=sys.stderr)
     out_dir = Path(args.out) if args.out else Path("runs") / scenario.name
     args.out_dir = out_dir
     if args.resume:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import difflib
 import errno
+import math
 import os
 import re
 import tomllib
@@ -40,6 +41,14 @@ MAX_PARTICLES_PER_LAYER = 10**7      # spheres per layer, given or derived
 #: keys of `Scenario` filled by the loader, not by the file
 _LOADER_FIELDS = ("text", "source")
 
+
+#: bounds outside which `Scenario.doubts` warns (a value likely in another unit):
+#: grain density (kg/m^3: pumice to gold), gravity (m/s^2: 10 g), Coulomb coefficient
+#: (friction angle 63 deg), bond strength (MPa: structural steel's yield)
+PLAUSIBLE_DENSITY = (300.0, 20000.0)
+PLAUSIBLE_GRAVITY = 98.1
+PLAUSIBLE_FRICTION = 2.0
+PLAUSIBLE_STRENGTH_MPA = 500.0
 
 #: the most time steps one phase of a stage may last (2**31 - 1: a 32-bit step count; 5 days
 #: of simulated time at the default time step)
@@ -579,6 +588,46 @@ class Scenario(_Model):
                                  f"sample_height_mm)"))
         _raise_if(problems)
         return self
+
+    def doubts(self) -> list[tuple[str, str]]:
+        """(key, reason) of values that are accepted but unlikely to be meant: a number in
+        another unit than the key's (a density in g/cm^3, gravity in mm/s^2, a strength in
+        Pa under a `_MPa` key, a friction angle in degrees for a coefficient). `tcd run` prints
+        each as a warning and runs the scenario as written."""
+        out = []
+        density = self.material.density
+        if not PLAUSIBLE_DENSITY[0] <= density <= PLAUSIBLE_DENSITY[1]:
+            hint = (f" (g/cm^3? {density:g} g/cm^3 is {density * 1e3:g} kg/m^3)"
+                    if density < PLAUSIBLE_DENSITY[0] else "")
+            out.append(("material.density",
+                        f"{density:g} kg/m^3 is outside {PLAUSIBLE_DENSITY[0]:g}-"
+                        f"{PLAUSIBLE_DENSITY[1]:g} kg/m^3, the range of solid grains; the key "
+                        f"is in kg/m^3 (aggregate about 2600-3000){hint}"))
+        g = self.solver.gravity
+        if g > PLAUSIBLE_GRAVITY:
+            out.append(("solver.gravity",
+                        f"{g:g} m/s^2 is {g / 9.81:.0f} times the Earth's 9.81 m/s^2; the key is "
+                        f"in m/s^2 (mm/s^2? {g:g} mm/s^2 is {g * 1e-3:g} m/s^2); ignore this "
+                        "for a centrifuge"))
+        frictions = [("material.friction", self.material.friction),
+                     ("material.wall_friction", self.material.wall_friction),
+                     ("bond.friction_after_break", self.bond.friction_after_break)]
+        frictions += [(f"stage[{k + 1}].wall_friction", stage.wall_friction)
+                      for k, stage in enumerate(self.stages) if isinstance(stage, ShearStage)]
+        for key, mu in frictions:
+            if mu > PLAUSIBLE_FRICTION:
+                hint = (f" (an angle in degrees? tan({mu:g} deg) = "
+                        f"{math.tan(math.radians(mu)):.3g})" if mu < 90 else "")
+                out.append((key, f"a Coulomb coefficient of {mu:g} (above "
+                                 f"{PLAUSIBLE_FRICTION:g}: friction angle "
+                                 f"{math.degrees(math.atan(mu)):.1f} deg){hint}"))
+        strength = self.bond.yield_stress_MPa
+        if strength > PLAUSIBLE_STRENGTH_MPA:
+            out.append(("bond.yield_stress_MPa",
+                        f"{strength:g} MPa is above {PLAUSIBLE_STRENGTH_MPA:g} MPa, stronger "
+                        f"than steel; the key is in MPa (Pa? {strength:g} Pa is "
+                        f"{strength * 1e-6:g} MPa; the default is 2.7 MPa)"))
+        return out
 
     def with_overrides(self, arch: Optional[str] = None,
                        precision: Optional[str] = None) -> "Scenario":

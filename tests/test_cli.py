@@ -793,3 +793,13 @@ def test_a_sample_the_simulation_refuses_is_named_in_the_message(tmp_path, capsy
     assert run_tcd(["run", str(scenario), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"tcd: error: {sample}: ") and "same centre" in err, err
+
+
+def test_run_warns_of_a_value_likely_in_another_unit_and_runs_it(tmp_path, capsys,
+                                                                 runner_calls):
+    path = tmp_path / "grams.toml"
+    path.write_text(SCENARIO + "[material]\ndensity = 2.6\n")
+    assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert f"tcd: warning: {path}: material.density: 2.6 kg/m^3" in err and "g/cm^3" in err
+    assert runner_calls[0]["scenario"].material.density == 2.6

@@ -617,3 +617,32 @@ def test_stages_longer_than_a_step_count_or_faster_than_the_steps_are_refused(tm
     assert n == 1
     stage = "stage[2]" if key == "velocity_mm_per_min" else "stage[1]"
     assert_names(refusal(tmp_path, text), f"{stage}.{key}", *words)
+
+
+# --- accepted, but doubted: values likely in another unit ----------------------------------------
+def test_shipped_scenarios_raise_no_doubt():
+    for path in sorted((ROOT / "scenarios").glob("*.toml")):
+        assert load_scenario(path).doubts() == [], path.name
+
+
+@pytest.mark.parametrize("section, key, value, words", [
+    ("material", "density", 2.6, ("2.6 kg/m^3", "g/cm^3", "2600 kg/m^3")),
+    ("material", "density", 26000.0, ("26000 kg/m^3", "outside 300-20000")),
+    ("solver", "gravity", 9810.0, ("1000 times", "mm/s^2", "9.81 m/s^2")),
+    ("material", "friction", 35.0, ("angle in degrees", "tan(35 deg) = 0.7")),
+    ("material", "wall_friction", 3.0, ("Coulomb coefficient of 3",)),
+    ("bond", "friction_after_break", 40.0, ("tan(40 deg) = 0.839",)),
+    ("bond", "yield_stress_MPa", 2.7e6, ("2.7e+06 MPa", "Pa?", "2.7 MPa")),
+])
+def test_a_value_in_another_unit_is_doubted_and_kept(section, key, value, words):
+    s = parse_scenario(MINIMAL + f"[{section}]\n{key} = {value!r}\n")
+    (doubt,) = s.doubts()
+    assert doubt[0] == f"{section}.{key}" and all(w in doubt[1] for w in words), doubt
+    assert getattr(getattr(s, section), key) == value          # run as written
+
+
+def test_the_bounds_of_doubt():
+    edge = "[material]\ndensity = 300.0\nfriction = 2.0\n[solver]\ngravity = 98.1\n"
+    assert parse_scenario(MINIMAL + edge).doubts() == []
+    s = parse_scenario(MINIMAL.replace('kind = "shear"', 'kind = "shear"\nwall_friction = 2.5'))
+    assert [k for k, _ in s.doubts()] == ["stage[2].wall_friction"]
