@@ -1,6 +1,7 @@
 """The README's table of a shear study: one Markdown row per sample of a finished run directory
 (its `summary.json`), then the mean and population standard deviation, the paper's simulations,
-the experiments and the relative errors of the mean. Nothing is recomputed by a simulation.
+the experiments and the relative errors of the mean (those three only for the paper's Leutner
+test: a summary whose `paper_test` is false gets a line saying how its test differs). Nothing is recomputed by a simulation.
 
     python benchmarks/study_table.py runs/leutner_shear
     python benchmarks/study_table.py runs/seeds1-3 runs/seeds4-5    # one study split by --seeds
@@ -40,6 +41,8 @@ def rows_of(summary: dict) -> list[list[str]]:
         rows.append(["mean ± std", "", f"{mean['tau_peak_MPa']:.3f} ± {std['tau_peak_MPa']:.3f}",
                      f"{mean['d_peak_mm']:.2f} ± {std['d_peak_mm']:.2f}",
                      f"{mean['residual_MPa']:.3f} ± {std['residual_MPa']:.3f}", "", "", "", "", ""])
+    if summary.get("paper_test") is False:      # another test: not compared with the paper's
+        return rows
     paper, exp, rel = summary["paper_simulation"], summary["experiment"], summary["relative_error"]
     rows.append(["paper's simulations (LMGC90)", "about 5200", f"{paper['tau_peak_MPa']:.3f}",
                  f"{paper['d_peak_mm']:.2f}", "", "", "", "", "", ""])
@@ -81,6 +84,9 @@ def main(argv=None) -> int:
     print("|" + "---|" * len(HEAD))
     for row in rows_of(summary):
         print("| " + " | ".join(row) + " |")
+    if summary.get("paper_test") is False:
+        from tcd.figures import not_compared_note
+        print(f"\n{not_compared_note(summary)}")
     return 0
 
 

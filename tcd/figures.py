@@ -28,6 +28,7 @@ import json
 import math
 import os
 import re
+import textwrap
 import warnings
 from pathlib import Path
 
@@ -70,8 +71,30 @@ def _relative_error(value: float, reference: float) -> float:
     return (value - reference) / reference if reference else math.nan
 
 
-def table2_rows(summary: dict) -> list[dict]:
-    """Rows of the paper's Table 2 with this run added.
+def is_paper_test(summary: dict | None, samples=()) -> bool:
+    """Whether the run is the paper's Leutner test, to be compared with Table 2's experiments:
+    its summary's `paper_test` (written since session 49); for an older summary, or none, a
+    test that reached half the paper's 2.5 mm (the series of `samples`, SampleCurves)."""
+    flag = (summary or {}).get("paper_test")
+    if isinstance(flag, bool):
+        return flag
+    if summary is not None and not samples:
+        return True
+    d_end = max((float(np.nanmax(s.displacement)) for s in samples), default=math.nan)
+    return bool(d_end >= 0.5 * DISPLACEMENT_END)
+
+
+def not_compared_note(summary: dict | None) -> str:
+    """The line Table 2 shows for a run that is not the paper's test (how it differs)."""
+    differences = [str(x) for x in (summary or {}).get("paper_test_differences") or []]
+    return ("Not compared with the paper's experiments: this test is not its Leutner test"
+            + (f" ({'; '.join(differences)})." if differences else "."))
+
+
+def table2_rows(summary: dict, paper_test: bool | None = None) -> list[dict]:
+    """Rows of the paper's Table 2 with this run added; for a run that is not the paper's
+    Leutner test (`paper_test`, default :func:`is_paper_test` of the summary), the run's row
+    alone, without relative errors.
 
     Each row: ``label``, ``tau_MPa``, ``d_mm``, ``tau_std_MPa``, ``d_std_mm`` (NaN where not
     applicable), ``n_samples`` (None for the experiments), ``tau_rel_error``, ``d_rel_error``
@@ -106,6 +129,13 @@ def table2_rows(summary: dict) -> list[dict]:
                 "tau_rel_error": _relative_error(tau, tau_exp) if reference else math.nan,
                 "d_rel_error": _relative_error(d, d_exp) if reference else math.nan}
 
+    if paper_test is None:
+        paper_test = is_paper_test(summary)
+    if not paper_test:
+        label = (f"tcd (this run, mean ± std of {n} samples)" if n != 1
+                 else "tcd (this run, one sample)")
+        return [row(label, tau_run, d_run, *((tau_std, d_std) if n != 1 else ()),
+                    n_samples=n, reference=False)]
     return [
         row("experiments", tau_exp, d_exp, reference=False),
         row("paper simulations (LMGC90)", obs.as_number(paper["tau_peak_MPa"]),
@@ -341,10 +371,17 @@ def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
     first = parts[0][1]
     experiment = {**EXPERIMENT, **(first.get("experiment") or {})}
     mean, std, relative = obs.study_statistics(samples, experiment)
+    # the parts' tests (one scenario): the paper's unless a part says otherwise
+    paper = all(s.get("paper_test") is not False for _, s in parts)
+    differences = list(dict.fromkeys(str(x) for _, s in parts
+                                     for x in s.get("paper_test_differences") or []))
     return {"scenario": first.get("scenario"), "merged_from": [os.fspath(p) for p, _ in parts],
-            "samples": samples, "mean": mean, "std": std, "experiment": experiment,
-            "paper_simulation": {**PAPER_SIMULATION, **(first.get("paper_simulation") or {})},
-            "relative_error": relative,
+            "samples": samples, "mean": mean, "std": std,
+            "paper_test": paper, "paper_test_differences": [] if paper else differences,
+            "experiment": experiment if paper else None,
+            "paper_simulation": ({**PAPER_SIMULATION, **(first.get("paper_simulation") or {})}
+                                 if paper else None),
+            "relative_error": relative if paper else None,
             "wall_time_s": {k: v for _, s in parts for k, v in (s.get("wall_time_s") or {}).items()
                             if k.startswith("sample_")}}
 
@@ -410,16 +447,18 @@ def _colors(n: int):
 
 
 def figure_stress_displacement(samples: list[SampleCurves], out_png: Path, written: list,
-                               pdf: bool = True) -> None:
-    """Paper Fig. 4: shear stress against imposed displacement, one line per sample."""
+                               pdf: bool = True, paper_test: bool | None = None) -> None:
+    """Paper Fig. 4: shear stress against imposed displacement, one line per sample; the
+    experiments' and the paper's peaks where the run is the paper's test (`paper_test`,
+    default: :func:`is_paper_test` of the samples)."""
     import matplotlib
     with matplotlib.rc_context(_RC):
         fig = _new_figure(7.2, 4.3)
         ax = fig.add_subplot()
-        # a test that ends well short of the paper's 2.5 mm is drawn over its own range,
-        # without the experiments' peak at 2.37 mm (it would squeeze the curves into a corner)
+        # another test than the paper's is drawn over its own range, without the experiments'
+        # peak at 2.37 mm (not its test; it would squeeze a short test into a corner)
         d_end = max(float(np.nanmax(s.displacement)) for s in samples)
-        leutner = d_end >= 0.5 * DISPLACEMENT_END
+        leutner = is_paper_test(None, samples) if paper_test is None else paper_test
         top = EXPERIMENT["tau_peak_MPa"] if leutner else 0.0
         for sample, color in zip(samples, _colors(len(samples))):
             d_mm = sample.displacement * 1e3
@@ -468,10 +507,12 @@ def _fmt_error(value: float) -> str:
     return f"{100.0 * value:+.1f} %" if math.isfinite(value) else "–"
 
 
-def table2_markdown(rows: list[dict]) -> str:
+def table2_markdown(rows: list[dict], note: str = "") -> str:
+    """Table 2 in Markdown; `note`: a line under its title (a run not compared with the
+    experiments: :func:`not_compared_note`)."""
     lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
              "through the experiments and the simulations (relative error to the experiments).",
-             "",
+             "", *([note, ""] if note else []),
              "| | τ [MPa] | d [mm] | rel. error τ | rel. error d |",
              "|---|---|---|---|---|"]
     for r in rows:
@@ -495,8 +536,9 @@ def table2_csv(rows: list[dict]) -> str:
     return buffer.getvalue()
 
 
-def figure_table2(rows: list[dict], out_png: Path, written: list) -> None:
-    """Table 2 as an image: a plain three-rule table (top, below the header, bottom)."""
+def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = "") -> None:
+    """Table 2 as an image: a plain three-rule table (top, below the header, bottom); `note`
+    replaces the line on relative errors (a run not compared with the experiments)."""
     import matplotlib
     header = ["", "τ [MPa]", "d [mm]", "rel. error τ", "rel. error d"]
     cells = [[r["label"].replace(" (this run, ", "\n(this run, "),
@@ -525,8 +567,9 @@ def figure_table2(rows: list[dict], out_png: Path, written: list) -> None:
         fig.text(0.02, 0.96, "Table 2. Shear stress τ and displacement d at failure: "
                  "experiments and simulations", ha="left", va="top", fontsize=10.5,
                  weight="bold")
-        fig.text(0.02, 0.86, "relative error = (simulation − experiment) / experiment",
-                 ha="left", va="top", fontsize=8.5, color="0.3")
+        fig.text(0.02, 0.86, "\n".join(textwrap.wrap(note, 130)) if note else
+                 "relative error = (simulation − experiment) / experiment",
+                 ha="left", va="top", fontsize=8.5 if not note else 7.5, color="0.3")
         _save(fig, out_png, written)
 
 
@@ -694,7 +737,8 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
                          f"{exc.strerror or exc}") from None
     written: list[Path] = []
 
-    figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written)
+    figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written,
+                               paper_test=is_paper_test(summary, samples))
     if summary is None:
         state = "unreadable" if (run_dir / SUMMARY_NAME).exists() else "missing"
         warnings.warn(f"{run_dir / SUMMARY_NAME} {state}: Table 2 from the series peaks",
@@ -702,10 +746,13 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     if several:
         io.write_json(out_dir / STUDY_SUMMARY_NAME, summary)
         written.append(out_dir / STUDY_SUMMARY_NAME)
-    rows = table2_rows(summary if summary is not None else summary_from_samples(samples))
-    _write_text(out_dir / "table2.md", table2_markdown(rows), written)
+    paper_test = is_paper_test(summary, samples)
+    rows = table2_rows(summary if summary is not None else summary_from_samples(samples),
+                       paper_test)
+    note = "" if paper_test else not_compared_note(summary)
+    _write_text(out_dir / "table2.md", table2_markdown(rows, note), written)
     _write_text(out_dir / "table2.csv", table2_csv(rows), written)
-    figure_table2(rows, out_dir / "table2.png", written)
+    figure_table2(rows, out_dir / "table2.png", written, note)
     figure_bonds_broken(samples, summary, out_dir / "bonds_broken.png", written)
     if render:
         _render_figures(samples, out_dir, written)

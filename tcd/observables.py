@@ -14,6 +14,13 @@ import numpy as np
 PAPER_EXPERIMENT = {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
 #: the paper's Table 2: mean of its 5 LMGC90 samples (MPa, mm)
 PAPER_SIMULATION = {"tau_peak_MPa": 0.837, "d_peak_mm": 2.2}
+#: the paper's Leutner test (section 3.4): a 150 mm by 120 mm core sheared at 50 mm/min to
+#: 2.5 mm. Table 2's experiments are that test's; a run of another test is not compared with them
+PAPER_TEST = {"velocity_mm_per_min": 50.0, "displacement_mm": 2.5, "diameter_mm": 150.0,
+              "height_mm": 120.0}
+#: relative tolerance of the speed and the mould's diameter, and of the sample's height (a
+#: prepared sample settles below its mould: the study's are 118.2-118.9 mm), in `paper_test_differences`
+PAPER_TEST_TOLERANCE = {"velocity_mm_per_min": 0.01, "diameter_mm": 0.01, "height_mm": 0.05}
 #: the per-sample results a study averages
 STUDY_KEYS = ("tau_peak_MPa", "d_peak_mm", "residual_MPa")
 
@@ -204,6 +211,34 @@ def as_number(value) -> float:
         return float(value)
     except (TypeError, ValueError):
         return math.nan
+
+
+def paper_test_differences(velocity_mm_per_min: float, displacement_mm: float,
+                           diameters_mm=(), heights_mm=()) -> list[str]:
+    """How a shear test differs from the paper's Leutner test (:data:`PAPER_TEST`), one phrase
+    each; [] when it is that test. `diameters_mm` and `heights_mm`: the samples' moulds and
+    heights (NaN or None where a sample does not say: not counted). A test that stops before
+    the experiments' peak (2.37 mm) differs; one that goes beyond 2.5 mm does not."""
+    out = []
+    tol, paper = PAPER_TEST_TOLERANCE, PAPER_TEST
+    v = as_number(velocity_mm_per_min)
+    if not abs(v / paper["velocity_mm_per_min"] - 1.0) <= tol["velocity_mm_per_min"]:
+        out.append(f"a shear at {v:g} mm/min (the paper's: {paper['velocity_mm_per_min']:g})")
+    d = as_number(displacement_mm)
+    if not d >= PAPER_EXPERIMENT["d_peak_mm"]:
+        out.append(f"a shear to {d:g} mm, short of the experiments' peak at "
+                   f"{PAPER_EXPERIMENT['d_peak_mm']:g} mm (the paper's: to "
+                   f"{paper['displacement_mm']:g} mm)")
+    for key, values, what in (("diameter_mm", diameters_mm, "a mould of"),
+                              ("height_mm", heights_mm, "a sample height of")):
+        values = np.array([as_number(x) for x in values], dtype=float)
+        values = values[np.isfinite(values)]
+        off = values[np.abs(values / paper[key] - 1.0) > tol[key]]
+        if off.size:
+            shown = (f"{off.min():.4g}" if np.ptp(off) <= 1e-9 * abs(off.max())
+                     else f"{off.min():.4g}-{off.max():.4g}")
+            out.append(f"{what} {shown} mm (the paper's: {paper[key]:g} mm)")
+    return out
 
 
 def study_statistics(samples, experiment=None) -> tuple[dict, dict, dict]:

@@ -522,6 +522,7 @@ class Shear:
             "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),
             "bonds_broken_tension": int(np.count_nonzero(state == 1)),
             "bonds_broken_shear": int(np.count_nonzero(state == 2)),
+            "mould_diameter_mm": 2e3 * phase.info["radius"],
             "sample_height_mm": phase.info.get("sample_height", 2 * z_i) * 1e3,
             "z_interface_mm": z_i * 1e3, "near_plane_band_mm": band * 1e3,
             "bonds_near_plane_fraction": float(near.mean()) if len(near) else 0.0,

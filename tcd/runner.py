@@ -1313,10 +1313,32 @@ def load_prepared(scn, path):
             from None
 
 
+def paper_test_differences(scn, samples: list) -> list[str]:
+    """How the run's shear test differs from the paper's Leutner test (its stage's speed and
+    displacement, its samples' moulds and heights): `tcd.observables.paper_test_differences`.
+    A scenario without a shear stage has no test to compare."""
+    shears = [st for st in scn.stages if st.kind == "shear"]
+    if not shears:
+        return ["no shear test"]
+    numbers = [next((v for k, v in (s.get("stages") or {}).items() if k.endswith("shear")), s)
+               for s in samples]        # each sample's shear stage (a sample of its own: itself)
+    return obs.paper_test_differences(shears[0].velocity_mm_per_min, shears[0].displacement_mm,
+                                      [n.get("mould_diameter_mm") for n in numbers],
+                                      [n.get("sample_height_mm") for n in numbers])
+
+
 def summarize(scn, samples: list) -> dict:
+    """The run's summary: its samples, their mean and population std, and, when its test is
+    the paper's Leutner test (`paper_test`), the relative error of the mean to Table 2's
+    experiments; another test (`paper_test_differences` says how it differs) is not compared
+    with them (`experiment`, `paper_simulation` and `relative_error` are null)."""
+    differences = paper_test_differences(scn, samples)
     mean, std, rel = obs.study_statistics(samples, PAPER_EXPERIMENT)
     wall = {f"sample_{s['seed']}": s.get("wall_time_s", {}) for s in samples}
+    paper = not differences
     return {"scenario": scn.name, "tcd_version": __version__, "arch": scn.backend.arch,
             "precision": scn.backend.precision, "samples": samples, "mean": mean, "std": std,
-            "experiment": PAPER_EXPERIMENT, "paper_simulation": PAPER_SIMULATION,
-            "relative_error": rel, "wall_time_s": wall}
+            "paper_test": paper, "paper_test_differences": differences,
+            "experiment": PAPER_EXPERIMENT if paper else None,
+            "paper_simulation": PAPER_SIMULATION if paper else None,
+            "relative_error": rel if paper else None, "wall_time_s": wall}

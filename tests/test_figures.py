@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tcd import io
-from tcd.figures import (FigureWarning, load_sample, make_figures, peak_of, render_frames,
-                         smooth, summary_from_samples, table2_rows)
+from tcd.figures import (FigureWarning, load_sample, make_figures, merge_summaries, peak_of,
+                         render_frames, smooth, summary_from_samples, table2_rows)
 
 pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"),
               pytest.mark.filterwarnings("ignore:.*summary.json missing:UserWarning"),
@@ -425,3 +425,39 @@ def test_fig4_of_a_short_test_is_drawn_over_its_own_range(tmp_path, monkeypatch)
         labels = [t.get_text() for t in ax.get_legend().get_texts()]
         assert ("experiments (mean of 5 cores)" in labels) == markers, (d_end, labels)
         assert ax.get_ylim()[1] == pytest.approx(1.12 * (0.898 if markers else 0.2), rel=1e-3), d_end
+    # the run's summary decides (a 2.5 mm test at 600 mm/min is not the paper's); a summary
+    # without the flag (before session 49) falls back to the test's range
+    for paper_test, markers in ((False, False), (True, True), (None, True)):
+        drawn.clear()
+        figures.figure_stress_displacement([curves(2.5e-3)], tmp_path / "f.png", [], pdf=False,
+                                           paper_test=paper_test)
+        labels = [t.get_text() for t in drawn[0].axes[0].get_legend().get_texts()]
+        assert ("experiments (mean of 5 cores)" in labels) == markers, paper_test
+
+
+def test_table2_of_another_test_than_the_paper_s_is_not_compared(tmp_path):
+    """A run whose test is not the paper's Leutner test (its summary's `paper_test` false)
+    gets its own row in Table 2, without the experiments and relative errors, and a line
+    saying how its test differs."""
+    run = tmp_path / "run"
+    for seed, (t, d) in {11: (0.80e6, 2.1e-3), 12: (0.86e6, 2.3e-3)}.items():
+        _write_sample(run, seed, t, d)
+    differences = ["a shear at 600 mm/min (the paper's: 50)", "a mould of 30 mm (the paper's: 150 mm)"]
+    summary = {**_summary(taus=(0.80, 0.86), ds=(2.1, 2.3)), "paper_test": False,
+               "paper_test_differences": differences, "experiment": None,
+               "paper_simulation": None, "relative_error": None}
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert [r["label"] for r in table2_rows(summary)] == ["tcd (this run, mean ± std of 2 samples)"]
+    with pytest.warns(FigureWarning, match="fig2.*fig3.*skipped"):
+        make_figures(run)
+    md = (run / "figures" / "table2.md").read_text()
+    assert "0.898" not in md and "0.837" not in md and " %" not in md and "0.830 ± " in md
+    assert ("Not compared with the paper's experiments: this test is not its Leutner test "
+            f"({differences[0]}; {differences[1]}).") in md
+    assert len((run / "figures" / "table2.csv").read_text().splitlines()) == 2
+    # merged with another part of the same study: still not compared
+    merged = merge_summaries([(run, summary), (run, {**_summary(taus=(0.9, 1.0), ds=(2.0, 2.1)),
+                                                   "samples": [{"seed": 14, "tau_peak_MPa": 0.9,
+                                                                "d_peak_mm": 2.0}]})])
+    assert merged["paper_test"] is False and merged["relative_error"] is None
+    assert merged["paper_test_differences"] == differences

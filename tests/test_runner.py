@@ -78,7 +78,14 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert s["particles"] == 180
     assert s["bonds_total"] > 100
     assert np.isfinite(s["tau_peak_MPa"]) and s["tau_peak_MPa"] > 0
-    assert summary["experiment"] == {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
+    # not the paper's test: not compared with its experiments, and the summary says why
+    shear = s["stages"]["1:shear"]
+    assert shear["mould_diameter_mm"] == pytest.approx(30.0)
+    assert summary["paper_test"] is False
+    assert summary["experiment"] is summary["relative_error"] is summary["paper_simulation"] is None
+    assert [x.split(" (")[0] for x in summary["paper_test_differences"]] == [
+        "a shear at 600 mm/min", "a shear to 0.4 mm, short of the experiments' peak at 2.37 mm",
+        "a mould of 30 mm", f"a sample height of {shear['sample_height_mm']:.4g} mm"]
     sample = out / "sample_1"
     stages = [io.read_frame(sample / "states.h5", k)["stage"] for k in range(io.frame_count(sample / "states.h5"))]
     assert "prepare" in stages and "shear" in stages
@@ -1165,6 +1172,26 @@ def test_summary_records_the_arch_and_precision_and_the_means():
     assert (summary["scenario"], summary["arch"], summary["precision"]) == ("tiny", "cpu", "f32")
     assert summary["mean"]["tau_peak_MPa"] == 0.9 and summary["mean"]["d_peak_mm"] == 2.5
     assert summary["wall_time_s"] == {"sample_1": {"0:shear": 1.0}, "sample_2": {}}
+
+
+# runner.py summarize: only the paper's Leutner test is compared with Table 2's experiments
+def test_summary_compares_only_the_paper_s_test_with_the_experiments():
+    from tcd import runner
+    from tcd.config import load_scenario
+    study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml")
+    samples = [{"seed": s, "tau_peak_MPa": 0.9, "d_peak_mm": 2.37, "stages": {"0:shear": {
+        "mould_diameter_mm": 150.0, "sample_height_mm": h}}} for s, h in ((1, 118.2), (2, 118.9))]
+    summary = runner.summarize(study, samples)
+    assert summary["paper_test"] is True and summary["paper_test_differences"] == []
+    assert summary["experiment"] == {"tau_peak_MPa": 0.898, "d_peak_mm": 2.37}
+    assert summary["relative_error"]["tau_peak"] == pytest.approx(0.9 / 0.898 - 1)
+    # the same scenario's samples in a narrower mould: another test
+    narrow = [{**s, "stages": {"0:shear": {"mould_diameter_mm": 100.0, "sample_height_mm": 118.5}}}
+              for s in samples]
+    summary = runner.summarize(study, narrow)
+    assert summary["paper_test"] is False and summary["relative_error"] is None
+    assert summary["paper_test_differences"] == ["a mould of 100 mm (the paper's: 150 mm)"]
+    assert summary["mean"]["tau_peak_MPa"] == pytest.approx(0.9)      # still averaged
 
 
 # runner.py _write_sample_summary: the headline numbers are the stages' own

@@ -53,3 +53,17 @@ def test_unfinished_run_is_refused(table, tmp_path, capsys):
     with pytest.raises(SystemExit):
         table.main([str(tmp_path)])
     assert "no summary.json" in capsys.readouterr().err
+
+
+def test_another_test_than_the_paper_s_gets_no_comparison_but_a_note(table, tmp_path, capsys):
+    _write_summary(tmp_path, [_sample(1, 0.9, 2.3)], 0.9, 2.3, 0.0, 0.0)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    summary.update(paper_test=False, experiment=None, paper_simulation=None, relative_error=None,
+                   paper_test_differences=["a shear at 600 mm/min (the paper's: 50)"])
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    assert table.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "experiments (" not in out and "LMGC90" not in out and " %" not in out
+    assert "| 1 | 5857 | 0.900 | 2.30 |" in out
+    assert out.rstrip().endswith("this test is not its Leutner test (a shear at 600 mm/min "
+                                 "(the paper's: 50)).")
