@@ -899,3 +899,48 @@ def test_the_end_frame_is_a_setting_of_scenarios_and_refuses_other_values():
             SolverSettings(**bad)
         with pytest.raises(ValueError, match="bond_frame"):
             config.SolverConfig(**bad)
+
+
+# --- session 49: a free bonded cluster keeps its momentum and angular momentum ----------------
+YIELD = 2e3       # Pa: weak enough that the throw breaks some of the bonds
+
+
+def test_a_free_bonded_cluster_conserves_momentum_and_angular_momentum(precision):
+    """Eight 5 mm grains on the corners of a cube, bonded across gaps of 0 to 35 um, no walls,
+    no gravity, thrown with random velocities and spins: a bond acts on both grains at one
+    point (the middle of its gap), so the cluster's momentum and its angular momentum about any
+    point stay those it started with while bonds break (session 49's budget of a sheared
+    sample's turn found its walls alone turning it). Surface-point lever arms would change the
+    angular momentum by g n x P per bond."""
+    rng = np.random.default_rng(49)
+    r = 0.0025
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+    x = corners * (2 * r + 2.5e-5) + rng.uniform(-5e-6, 5e-6, (8, 3))
+    sim = Simulation([r] * 8, x, settings=SolverSettings(time_step=1e-4, tolerance=1e-10,
+                                                         max_sweeps=2000,
+                                                         gravity=(0.0, 0.0, 0.0)),
+                     domain=((-0.05,) * 3, (0.05,) * 3), bond_law=BondLaw(yield_stress=YIELD))
+    assert sim.create_bonds(gap_tolerance=4e-5) == 12           # the cube's edges
+    sim.set_velocities(rng.normal(0.0, 0.05, (8, 3)))
+    sim.set_angular_velocities(rng.normal(0.0, 20.0, (8, 3)))
+    im, ii = sim.inverse_masses()
+    m, inertia = 1.0 / im, 1.0 / ii
+
+    def momenta():
+        x, v, w = sim.positions(), sim.velocities(), sim.angular_velocities()
+        p = (m[:, None] * v).sum(axis=0)
+        about = np.array([0.01, -0.02, 0.005])          # any point will do
+        L = (m[:, None] * np.cross(x - about, v)).sum(axis=0) + (inertia[:, None] * w).sum(axis=0)
+        scale = (m * np.linalg.norm(x - about, axis=1) * np.linalg.norm(v, axis=1)).sum() \
+            + (inertia * np.linalg.norm(w, axis=1)).sum()
+        return p, L, scale, (m * np.linalg.norm(v, axis=1)).sum()
+
+    p0, L0, L_scale, p_scale = momenta()
+    for _ in range(200):
+        sim.step()
+    p1, L1, _, _ = momenta()
+    rel = 1e-11 if precision == "f64" else 2e-5
+    assert np.abs(p1 - p0).max() <= rel * p_scale, (p0, p1)
+    assert np.abs(L1 - L0).max() <= rel * L_scale, (L0, L1)
+    intact, tension, shear = sim.bonds_state_counts()
+    assert tension + shear > 0 and intact > 0, (intact, tension, shear)  # loaded: some broke
