@@ -598,17 +598,18 @@ class Scenario(_Model):
         density = self.material.density
         if not PLAUSIBLE_DENSITY[0] <= density <= PLAUSIBLE_DENSITY[1]:
             hint = (f" (g/cm^3? {density:g} g/cm^3 is {density * 1e3:g} kg/m^3)"
-                    if density < PLAUSIBLE_DENSITY[0] else "")
+                    if PLAUSIBLE_DENSITY[0] <= density * 1e3 <= PLAUSIBLE_DENSITY[1] else "")
             out.append(("material.density",
                         f"{density:g} kg/m^3 is outside {PLAUSIBLE_DENSITY[0]:g}-"
                         f"{PLAUSIBLE_DENSITY[1]:g} kg/m^3, the range of solid grains; the key "
                         f"is in kg/m^3 (aggregate about 2600-3000){hint}"))
         g = self.solver.gravity
         if g > PLAUSIBLE_GRAVITY:
+            hint = (f" (mm/s^2? {g:g} mm/s^2 is {g * 1e-3:g} m/s^2)"
+                    if 1.0 <= g * 1e-3 <= PLAUSIBLE_GRAVITY else "")
             out.append(("solver.gravity",
                         f"{g:g} m/s^2 is {g / 9.81:.0f} times the Earth's 9.81 m/s^2; the key is "
-                        f"in m/s^2 (mm/s^2? {g:g} mm/s^2 is {g * 1e-3:g} m/s^2); ignore this "
-                        "for a centrifuge"))
+                        f"in m/s^2{hint}; ignore this for a centrifuge"))
         frictions = [("material.friction", self.material.friction),
                      ("material.wall_friction", self.material.wall_friction),
                      ("bond.friction_after_break", self.bond.friction_after_break)]
@@ -620,13 +621,15 @@ class Scenario(_Model):
                         f"{math.tan(math.radians(mu)):.3g})" if mu < 90 else "")
                 out.append((key, f"a Coulomb coefficient of {mu:g} (above "
                                  f"{PLAUSIBLE_FRICTION:g}: friction angle "
-                                 f"{math.degrees(math.atan(mu)):.1f} deg){hint}"))
+                                 f"{math.degrees(math.atan(mu)):.1f} deg){hint}; ignore this "
+                                 "for walls meant to be rough (no slip)"))
         strength = self.bond.yield_stress_MPa
         if strength > PLAUSIBLE_STRENGTH_MPA:
             out.append(("bond.yield_stress_MPa",
                         f"{strength:g} MPa is above {PLAUSIBLE_STRENGTH_MPA:g} MPa, stronger "
-                        f"than steel; the key is in MPa (Pa? {strength:g} Pa is "
-                        f"{strength * 1e-6:g} MPa; the default is 2.7 MPa)"))
+                        f"than steel; the key is in MPa (kPa? {strength:g} kPa is "
+                        f"{strength * 1e-3:g} MPa; Pa? {strength:g} Pa is {strength * 1e-6:g} "
+                        "MPa; the default is 2.7 MPa)"))
         return out
 
     def with_overrides(self, arch: Optional[str] = None,

@@ -371,13 +371,17 @@ def merge_summaries(parts: list[tuple[Path, dict]]) -> dict:
     first = parts[0][1]
     experiment = {**EXPERIMENT, **(first.get("experiment") or {})}
     mean, std, relative = obs.study_statistics(samples, experiment)
-    # the parts' tests (one scenario): the paper's unless a part says otherwise
-    paper = all(s.get("paper_test") is not False for _, s in parts)
+    # the parts' tests (one scenario): the paper's unless a part says otherwise; parts written
+    # before session 49 do not say, and the merged summary does not either (is_paper_test then
+    # judges by the samples' range, as for one such run)
+    flags = [s.get("paper_test") for _, s in parts if isinstance(s.get("paper_test"), bool)]
+    paper = all(flags)
     differences = list(dict.fromkeys(str(x) for _, s in parts
                                      for x in s.get("paper_test_differences") or []))
+    said = {"paper_test": paper, "paper_test_differences": [] if paper else differences} \
+        if flags else {}
     return {"scenario": first.get("scenario"), "merged_from": [os.fspath(p) for p, _ in parts],
-            "samples": samples, "mean": mean, "std": std,
-            "paper_test": paper, "paper_test_differences": [] if paper else differences,
+            "samples": samples, "mean": mean, "std": std, **said,
             "experiment": experiment if paper else None,
             "paper_simulation": ({**PAPER_SIMULATION, **(first.get("paper_simulation") or {})}
                                  if paper else None),
@@ -508,11 +512,17 @@ def _fmt_error(value: float) -> str:
 
 
 def table2_markdown(rows: list[dict], note: str = "") -> str:
-    """Table 2 in Markdown; `note`: a line under its title (a run not compared with the
-    experiments: :func:`not_compared_note`)."""
+    """Table 2 in Markdown; `note`: a run not compared with the experiments
+    (:func:`not_compared_note`), under the title, and no relative-error columns."""
+    if note:
+        lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
+                 "of this run.", "", note, "", "| | τ [MPa] | d [mm] |", "|---|---|---|"]
+        lines += [f"| {r['label']} | {_fmt(r['tau_MPa'], 3, r['tau_std_MPa'])} | "
+                  f"{_fmt(r['d_mm'], 2, r['d_std_mm'])} |" for r in rows]
+        return "\n".join(lines) + "\n"
     lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
              "through the experiments and the simulations (relative error to the experiments).",
-             "", *([note, ""] if note else []),
+             "",
              "| | τ [MPa] | d [mm] | rel. error τ | rel. error d |",
              "|---|---|---|---|---|"]
     for r in rows:
@@ -537,21 +547,30 @@ def table2_csv(rows: list[dict]) -> str:
 
 
 def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = "") -> None:
-    """Table 2 as an image: a plain three-rule table (top, below the header, bottom); `note`
-    replaces the line on relative errors (a run not compared with the experiments)."""
+    """Table 2 as an image: a plain three-rule table (top, below the header, bottom). With a
+    `note` (a run not compared with the experiments: :func:`not_compared_note`) the table has
+    no relative-error columns and the note, wrapped, stands under the title."""
     import matplotlib
-    header = ["", "τ [MPa]", "d [mm]", "rel. error τ", "rel. error d"]
+    compared = not note
+    header = ["", "τ [MPa]", "d [mm]"] + (["rel. error τ", "rel. error d"] if compared else [])
     cells = [[r["label"].replace(" (this run, ", "\n(this run, "),
-              _fmt(r["tau_MPa"], 3, r["tau_std_MPa"]), _fmt(r["d_mm"], 2, r["d_std_mm"]),
-              _fmt_error(r["tau_rel_error"]), _fmt_error(r["d_rel_error"])] for r in rows]
+              _fmt(r["tau_MPa"], 3, r["tau_std_MPa"]), _fmt(r["d_mm"], 2, r["d_std_mm"])]
+             + ([_fmt_error(r["tau_rel_error"]), _fmt_error(r["d_rel_error"])] if compared else [])
+             for r in rows]
+    lines = textwrap.wrap(note, 120) if note else []
+    if compared:        # the layout of every figure before session 49, to the byte
+        height, axes, widths = 2.3, (0.02, 0.04, 0.96, 0.70), [0.36, 0.17, 0.15, 0.16, 0.16]
+    else:               # inches: title and note lines above, rows of 0.4 in, 0.09 in below
+        above, table_h = 0.42 + 0.14 * len(lines), 0.4 * (len(rows) + 1)
+        height = above + table_h + 0.09
+        axes, widths = (0.02, 0.09 / height, 0.96, table_h / height), [0.52, 0.24, 0.24]
     with matplotlib.rc_context(_RC):
-        fig = Figure(figsize=(8.2, 2.3), dpi=150)
+        fig = Figure(figsize=(8.2, height), dpi=150)
         FigureCanvasAgg(fig)
-        ax = fig.add_axes((0.02, 0.04, 0.96, 0.70))
+        ax = fig.add_axes(axes)
         ax.axis("off")
         table = ax.table(cellText=cells, colLabels=header, loc="upper center",
-                         cellLoc="center", colLoc="center",
-                         colWidths=[0.36, 0.17, 0.15, 0.16, 0.16], bbox=(0, 0, 1, 1))
+                         cellLoc="center", colLoc="center", colWidths=widths, bbox=(0, 0, 1, 1))
         table.auto_set_font_size(False)
         table.set_fontsize(10)
         for (row, col), cell in table.get_celld().items():
@@ -564,12 +583,17 @@ def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = ""
         n = len(rows) + 1
         for y, lw in ((1.0, 1.2), ((n - 1) / n, 0.7), (0.0, 1.2)):
             ax.plot([0, 1], [y, y], color="k", lw=lw, transform=ax.transAxes, clip_on=False)
-        fig.text(0.02, 0.96, "Table 2. Shear stress τ and displacement d at failure: "
-                 "experiments and simulations", ha="left", va="top", fontsize=10.5,
-                 weight="bold")
-        fig.text(0.02, 0.86, "\n".join(textwrap.wrap(note, 130)) if note else
-                 "relative error = (simulation − experiment) / experiment",
-                 ha="left", va="top", fontsize=8.5 if not note else 7.5, color="0.3")
+        if compared:
+            fig.text(0.02, 0.96, "Table 2. Shear stress τ and displacement d at failure: "
+                     "experiments and simulations", ha="left", va="top", fontsize=10.5,
+                     weight="bold")
+            fig.text(0.02, 0.86, "relative error = (simulation − experiment) / experiment",
+                     ha="left", va="top", fontsize=8.5, color="0.3")
+        else:
+            fig.text(0.02, 1.0 - 0.09 / height, "Table 2. Shear stress τ and displacement d at "
+                     "failure: this run", ha="left", va="top", fontsize=10.5, weight="bold")
+            fig.text(0.02, 1.0 - 0.33 / height, "\n".join(lines), ha="left", va="top",
+                     fontsize=8.0, color="0.3", linespacing=1.15)
         _save(fig, out_png, written)
 
 

@@ -226,9 +226,8 @@ def paper_test_differences(velocity_mm_per_min: float, displacement_mm: float,
         out.append(f"a shear at {v:g} mm/min (the paper's: {paper['velocity_mm_per_min']:g})")
     d = as_number(displacement_mm)
     if not d >= PAPER_EXPERIMENT["d_peak_mm"]:
-        out.append(f"a shear to {d:g} mm, short of the experiments' peak at "
-                   f"{PAPER_EXPERIMENT['d_peak_mm']:g} mm (the paper's: to "
-                   f"{paper['displacement_mm']:g} mm)")
+        out.append(f"a shear to {d:g} mm (the paper's: to {paper['displacement_mm']:g} mm; "
+                   f"the experiments' peak is at {PAPER_EXPERIMENT['d_peak_mm']:g} mm)")
     for key, values, what in (("diameter_mm", diameters_mm, "a mould of"),
                               ("height_mm", heights_mm, "a sample height of")):
         values = np.array([as_number(x) for x in values], dtype=float)

@@ -632,13 +632,23 @@ def test_shipped_scenarios_raise_no_doubt():
     ("material", "friction", 35.0, ("angle in degrees", "tan(35 deg) = 0.7")),
     ("material", "wall_friction", 3.0, ("Coulomb coefficient of 3",)),
     ("bond", "friction_after_break", 40.0, ("tan(40 deg) = 0.839",)),
-    ("bond", "yield_stress_MPa", 2.7e6, ("2.7e+06 MPa", "Pa?", "2.7 MPa")),
+    ("bond", "yield_stress_MPa", 2.7e6, ("2.7e+06 MPa", "Pa?", "is 2.7 MPa")),
+    ("bond", "yield_stress_MPa", 2700.0, ("kPa? 2700 kPa is 2.7 MPa",)),
 ])
 def test_a_value_in_another_unit_is_doubted_and_kept(section, key, value, words):
     s = parse_scenario(MINIMAL + f"[{section}]\n{key} = {value!r}\n")
     (doubt,) = s.doubts()
     assert doubt[0] == f"{section}.{key}" and all(w in doubt[1] for w in words), doubt
     assert getattr(getattr(s, section), key) == value          # run as written
+
+
+def test_a_hint_at_another_unit_only_where_that_unit_gives_a_plausible_value():
+    """Expanded polystyrene beads (25 kg/m^3) are no grams per cm^3; a 50 g centrifuge is no
+    mm/s^2 (session 49's review)."""
+    (doubt,) = parse_scenario(MINIMAL + "[material]\ndensity = 25.0\n").doubts()
+    assert "25 kg/m^3 is outside" in doubt[1] and "g/cm^3" not in doubt[1]
+    (doubt,) = parse_scenario(MINIMAL + "[solver]\ngravity = 490.5\n").doubts()
+    assert "50 times" in doubt[1] and "mm/s^2" not in doubt[1] and "centrifuge" in doubt[1]
 
 
 def test_the_bounds_of_doubt():

@@ -208,11 +208,11 @@ def test_paper_test_differences_name_each_departure_from_the_leutner_test():
     assert diff(50.0, 2.5, [], []) == []                    # samples that do not say
     assert diff(600.0, 0.4, [30.0], [10.0]) == [
         "a shear at 600 mm/min (the paper's: 50)",
-        "a shear to 0.4 mm, short of the experiments' peak at 2.37 mm (the paper's: to 2.5 mm)",
+        "a shear to 0.4 mm (the paper's: to 2.5 mm; the experiments' peak is at 2.37 mm)",
         "a mould of 30 mm (the paper's: 150 mm)",
         "a sample height of 10 mm (the paper's: 120 mm)"]
     assert diff(50.0, 2.3, [150.0, 140.0, 130.0], [None, 113.0, 126.5]) == [
-        "a shear to 2.3 mm, short of the experiments' peak at 2.37 mm (the paper's: to 2.5 mm)",
+        "a shear to 2.3 mm (the paper's: to 2.5 mm; the experiments' peak is at 2.37 mm)",
         "a mould of 130-140 mm (the paper's: 150 mm)",
         "a sample height of 113-126.5 mm (the paper's: 120 mm)"]
     assert diff(float("nan"), 2.5)[0].startswith("a shear at nan mm/min")
