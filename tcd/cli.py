@@ -276,33 +276,57 @@ def cmd_analyse(args) -> int:
     return 0
 
 
-def cmd_figures(args) -> int:
-    run_dirs = [Path(p) for p in args.run_dir]
-    for run_dir in run_dirs:
-        if not run_dir.is_dir():
-            raise UsageError(f"{run_dir}: no such run directory")
-    if len(run_dirs) > 1 and args.out is None:
-        raise UsageError("several run directories (the parts of one study): give --out DIR "
-                         "for their figures")
+def _figure_warnings_as_lines(make):
+    """`make()` with the figures' warnings printed as one line each (`tcd: warning: ...`), not
+    with the source line that raised them; returns what `make` returns."""
     import warnings
     from . import figures
     category = getattr(figures, "FigureWarning", UserWarning)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", category)
         try:
-            written = figures.make_figures(run_dirs[0] if len(run_dirs) == 1 else run_dirs,
-                                           args.out)
+            return make()
         finally:
-            # the figures' warnings as one line each, not with the source line that raised them
             for w in caught:
                 if issubclass(w.category, category):
                     print(f"tcd: warning: {w.message}", file=sys.stderr)
                 else:
                     warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+
+
+def _run_dirs(paths) -> list[Path]:
+    run_dirs = [Path(p) for p in paths]
+    for run_dir in run_dirs:
+        if not run_dir.is_dir():
+            raise UsageError(f"{run_dir}: no such run directory")
+    return run_dirs
+
+
+def cmd_figures(args) -> int:
+    run_dirs = _run_dirs(args.run_dir)
+    if len(run_dirs) > 1 and args.out is None:
+        raise UsageError("several run directories (the parts of one study): give --out DIR "
+                         "for their figures")
+    from . import figures
+    written = _figure_warnings_as_lines(lambda: figures.make_figures(
+        run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out))
     for path in written:
         print(path)
     if not written:
         print(f"tcd: no figures written from {', '.join(map(str, run_dirs))}", file=sys.stderr)
+    return 0
+
+
+def cmd_compare(args) -> int:
+    run_dirs = _run_dirs(args.run_dir)
+    if len(run_dirs) < 2:
+        raise UsageError("tcd compare needs at least two run directories (one run's figures: "
+                         "tcd figures RUN_DIR)")
+    labels = args.labels.split(",") if args.labels is not None else None
+    from .compare import compare_runs
+    written = _figure_warnings_as_lines(lambda: compare_runs(run_dirs, args.out, labels))
+    for path in written:
+        print(path)
     return 0
 
 
@@ -586,6 +610,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="where to write them (default: inside RUN_DIR; "
                                                 "needed with several RUN_DIRs)")
     p.set_defaults(handler=cmd_figures)
+
+    p = sub.add_parser("compare", help="several runs side by side (a parameter study): their "
+                                        "shear curves, mean peaks and differing settings")
+    p.add_argument("run_dir", metavar="RUN_DIR", nargs="+",
+                   help="two or more run directories, of any scenarios")
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="where to write compare.png/.pdf/.md/.csv")
+    p.add_argument("--labels", metavar="A,B,...",
+                   help="one name per run (default: each directory's name)")
+    p.set_defaults(handler=cmd_compare)
 
     p = sub.add_parser("view", help="interactive viewer of a states file (needs a display)")
     p.add_argument("file", metavar="FILE.h5")

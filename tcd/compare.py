@@ -1,0 +1,217 @@
+"""Several runs side by side (`tcd compare`): a parameter study's shear curves and peaks.
+
+`tcd figures` draws one study (one scenario, its samples); `tcd compare RUN_A RUN_B ... --out
+DIR` puts runs of different scenarios together, as a calibration or sensitivity study does
+(a yield stress, a ring friction, a time step varied): one colour per run, each sample's
+smoothed curve thin and the run's mean curve thick, each run's mean peak with its spread, and
+a table of the runs with the scenario settings in which they differ.
+
+Outputs: `compare.png` and `compare.pdf` (shear stress against displacement), `compare.md`
+and `compare.csv` (one row per run). Nothing is recomputed by a simulation: the curves and
+peaks are those of each sample's `shear_series.h5`, smoothed and read as `tcd figures` reads
+them (`tcd.figures.load_run`), so a run's numbers here are its Table 2's.
+"""
+from __future__ import annotations
+
+import csv
+import io as _stdio
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from . import figures
+
+#: scenario keys that never make two runs differ in physics (names, seeds, outputs)
+IGNORED_KEYS = figures.STUDY_FREE_KEYS
+
+
+def _flat(value, prefix: str = "") -> dict:
+    """A scenario dict as {dotted key: leaf}, arrays numbered from 1 (`stage[2].wall_friction`,
+    as the scenario's own errors name them)."""
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {}
+        for k, v in enumerate(value, start=1):
+            out.update(_flat(v, f"{prefix}[{k}]"))
+        return out
+    return {prefix: value}
+
+
+def differing_settings(scenarios: list[dict | None]) -> list[str]:
+    """The dotted scenario keys whose values are not the same in every run (a run whose
+    scenario.toml is missing is left out), in the scenarios' order."""
+    flats = [_flat(s) for s in scenarios if s is not None]
+    keys = list(dict.fromkeys(k for f in flats for k in f))
+    missing = object()
+    return [k for k in keys if len({repr(f.get(k, missing)) for f in flats}) > 1]
+
+
+def _shown(value) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_shown(v) for v in value) + "]"
+    return str(value)
+
+
+def run_numbers(samples: list) -> dict:
+    """Mean and population std over a run's samples (SampleCurves) of the peak (MPa, mm), the
+    stress at the end of the test (MPa) and the share of bonds broken by then."""
+    def stats(values):
+        values = np.array([v for v in values if math.isfinite(v)], dtype=float)
+        if not values.size:
+            return math.nan, math.nan
+        return float(values.mean()), float(values.std()) if values.size > 1 else math.nan
+
+    def broken_share(s):
+        ser = s.series
+        keys = ("bonds_intact", "bonds_broken_tension", "bonds_broken_shear")
+        if not all(k in ser and len(ser[k]) for k in keys):
+            return math.nan
+        total = sum(float(ser[k][0]) for k in keys)
+        broken = float(ser["bonds_broken_tension"][-1]) + float(ser["bonds_broken_shear"][-1])
+        return broken / total if total > 0 else math.nan
+
+    out = {"n_samples": len(samples)}
+    for key, values in (("tau_peak_MPa", [s.tau_peak * 1e-6 for s in samples]),
+                        ("d_peak_mm", [s.d_peak * 1e3 for s in samples]),
+                        ("tau_end_MPa", [float(s.smoothed[-1]) * 1e-6 if s.smoothed.size
+                                         else math.nan for s in samples]),
+                        ("bonds_broken_share", [broken_share(s) for s in samples])):
+        out[key], out[key.replace("_MPa", "").replace("_mm", "").replace("_share", "")
+                      + "_std"] = stats(values)
+    return out
+
+
+def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """(displacement m, mean smoothed stress Pa) of a run's samples, on a common grid up to
+    the shortest sample's end."""
+    ends = [float(np.nanmax(s.displacement)) for s in samples if s.displacement.size]
+    if not ends:
+        return np.zeros(0), np.zeros(0)
+    grid = np.linspace(0.0, min(ends), points)
+    curves = [np.interp(grid, s.displacement, s.smoothed) for s in samples if s.displacement.size]
+    return grid, np.mean(curves, axis=0)
+
+
+def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
+    """Write compare.png/.pdf/.md/.csv of `run_dirs` (at least two run directories) into
+    `out_dir`; `labels`: one name per run (default: each directory's name). Returns the files
+    written. Raises ValueError for fewer than two runs, labels that do not match them, a run
+    without a usable sample; FileNotFoundError for a missing directory."""
+    run_dirs = [Path(p) for p in run_dirs]
+    if len(run_dirs) < 2:
+        raise ValueError("tcd compare needs at least two run directories (one run's figures: "
+                         "tcd figures RUN_DIR)")
+    if labels is None:
+        labels = [p.name or os.fspath(p) for p in run_dirs]
+    labels = [str(x) for x in labels]
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} run directories: give one "
+                         "label per run")
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"labels {labels} repeat a name (two run folders of one name: give "
+                         "--labels)")
+    for run_dir in run_dirs:
+        if not run_dir.is_dir():
+            raise FileNotFoundError(f"{run_dir}: run directory not found")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir}: exists and is not a directory")
+    runs = []
+    for label, run_dir in zip(labels, run_dirs):
+        summary, samples = figures.load_run(run_dir)
+        runs.append({"label": label, "dir": run_dir, "summary": summary, "samples": samples,
+                     "scenario": figures._scenario_of(run_dir), **run_numbers(samples)})
+    keys = differing_settings([r["scenario"] for r in runs])
+    for r in runs:
+        flat = _flat(r["scenario"]) if r["scenario"] is not None else {}
+        r["settings"] = {k: _shown(flat.get(k)) if r["scenario"] is not None else "?"
+                         for k in keys}
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out_dir}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
+    written: list[Path] = []
+    _figure(runs, keys, out_dir / "compare.png", written)
+    figures._write_text(out_dir / "compare.md", table_markdown(runs, keys), written)
+    figures._write_text(out_dir / "compare.csv", table_csv(runs, keys), written)
+    return written
+
+
+def table_markdown(runs: list[dict], keys: list[str]) -> str:
+    head = ["run", *keys, "samples", "peak τ (MPa)", "at d (mm)", "τ at the end (MPa)",
+            "bonds broken", "folder"]
+    lines = ["Runs compared: each run's mean ± population std over its samples (peak of the "
+             "smoothed curve, as its Table 2), and the scenario settings in which the runs "
+             "differ.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in runs:
+        share = r["bonds_broken_share"]
+        lines.append("| " + " | ".join([
+            r["label"], *(r["settings"][k] for k in keys), str(r["n_samples"]),
+            figures._fmt(r["tau_peak_MPa"], 3, r["tau_peak_std"]),
+            figures._fmt(r["d_peak_mm"], 2, r["d_peak_std"]),
+            figures._fmt(r["tau_end_MPa"], 3, r["tau_end_std"]),
+            f"{100 * share:.1f} %" if math.isfinite(share) else "–",
+            os.fspath(r["dir"])]) + " |")
+    if not keys:
+        lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
+    return "\n".join(lines) + "\n"
+
+
+def table_csv(runs: list[dict], keys: list[str]) -> str:
+    buffer = _stdio.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    numbers = ["n_samples", "tau_peak_MPa", "tau_peak_std", "d_peak_mm", "d_peak_std",
+               "tau_end_MPa", "tau_end_std", "bonds_broken_share", "bonds_broken_std"]
+    writer.writerow(["label", *keys, *numbers, "folder"])
+    for r in runs:
+        writer.writerow([r["label"], *(r["settings"][k] for k in keys),
+                         *("" if isinstance(r[k], float) and math.isnan(r[k])
+                           else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k])
+                           for k in numbers), os.fspath(r["dir"])])
+    return buffer.getvalue()
+
+
+def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> None:
+    import matplotlib
+    with matplotlib.rc_context(figures._RC):
+        fig = figures._new_figure(7.2, 4.2 + 0.22 * len(runs))
+        ax = fig.add_subplot()
+        for r, color in zip(runs, figures._colors(len(runs))):
+            for s in r["samples"]:
+                ax.plot(s.displacement * 1e3, s.smoothed * 1e-6, color=color, lw=0.6,
+                        alpha=0.35, zorder=1)
+            d, tau = mean_curve(r["samples"])
+            shown = "; ".join(f"{k.split('.')[-1]} {r['settings'][k]}" for k in keys[:3])
+            ax.plot(d * 1e3, tau * 1e-6, color=color, lw=2.0, zorder=2,
+                    label=f"{r['label']} ({r['n_samples']} sample{'s' if r['n_samples'] != 1 else ''}"
+                          f"{': ' + shown if shown else ''})")
+            xerr = r["d_peak_std"] if math.isfinite(r["d_peak_std"]) else None
+            yerr = r["tau_peak_std"] if math.isfinite(r["tau_peak_std"]) else None
+            ax.errorbar(r["d_peak_mm"], r["tau_peak_MPa"], xerr=xerr, yerr=yerr, fmt="o",
+                        ms=6, mfc="white", mec=color, mew=1.6, ecolor=color, capsize=3, zorder=4)
+        ax.plot([], [], "o", ms=6, mfc="white", mec="0.3", mew=1.6,
+                label="mean peak ± std of each run")
+        ax.set_xlim(left=0.0)
+        ax.set_xlabel("Imposed displacement d (mm)")
+        ax.set_ylabel("Shear stress τ (MPa)")
+        ax.grid(True, lw=0.4, alpha=0.4)
+        ax.tick_params(direction="in", top=True, right=True)
+        ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.14), frameon=False,
+                  title="mean of each run's smoothed curves (each sample faint)",
+                  title_fontsize=8.5, alignment="left")
+        figures._save(fig, out_png, written)
+        figures._save(fig, out_png.with_suffix(".pdf"), written)
+
+
+__all__ = ["compare_runs", "differing_settings", "mean_curve", "run_numbers"]

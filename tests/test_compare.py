@@ -1,0 +1,109 @@
+"""`tcd compare`: runs of different scenarios side by side (tcd.compare), on synthetic runs."""
+import json
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from tcd import compare
+from tcd.cli import main
+from test_figures import _write_sample
+
+SCENARIO = """\
+name = "{name}"
+seeds = {seeds}
+[bond]
+yield_stress_MPa = {yield_}
+[[stage]]
+kind = "shear"
+sample = "{{seed}}.h5"
+wall_friction = {friction}
+"""
+
+
+def _run(tmp_path, name, peaks, yield_=1.7, friction=0.3):
+    """A finished run directory: one sample per (seed, tau_peak Pa, d_peak m) with a shear
+    series, its scenario.toml (the setting varied), and a summary written by this session."""
+    run = tmp_path / name
+    for seed, tau, d in peaks:
+        _write_sample(run, seed, tau, d)
+    seeds = [seed for seed, _, _ in peaks]
+    (run / "scenario.toml").write_text(SCENARIO.format(name=name, seeds=seeds, yield_=yield_,
+                                                       friction=friction))
+    (run / "summary.json").write_text(json.dumps({"samples": [
+        {"seed": seed, "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d * 1e3} for seed, tau, d in peaks]}))
+    return run
+
+
+def test_compare_tables_each_run_with_the_settings_it_differs_in(tmp_path):
+    weak = _run(tmp_path, "weak", [(1, 0.70e6, 2.0e-3), (2, 0.74e6, 2.2e-3)], yield_=1.5)
+    strong = _run(tmp_path, "strong", [(1, 0.95e6, 2.4e-3)], yield_=2.0)
+    rough = _run(tmp_path, "rough", [(3, 0.90e6, 2.3e-3)], yield_=2.0, friction=0.5)
+    out = tmp_path / "cmp"
+    written = compare.compare_runs([weak, strong, rough], out, labels=["y1.5", "y2.0", "y2.0 rough"])
+    assert sorted(p.name for p in written) == ["compare.csv", "compare.md", "compare.pdf",
+                                               "compare.png"]
+    md = (out / "compare.md").read_text()
+    head = md.splitlines()[2]
+    assert "bond.yield_stress_MPa" in head and "stage[1].wall_friction" in head
+    assert "seeds" not in head and "name" not in head.replace("run", "")     # not physics
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in md.splitlines()[4:7]}
+    assert rows["y1.5"].startswith("| y1.5 | 1.5 | 0.3 | 2 | ")
+    assert rows["y2.0 rough"].startswith("| y2.0 rough | 2 | 0.5 | 1 | ")
+    # the peaks are the series' own (the smoothed curve's), averaged over each run's samples
+    table = [line.split(",") for line in (out / "compare.csv").read_text().splitlines()]
+    assert table[0][:5] == ["label", "bond.yield_stress_MPa", "stage[1].wall_friction", "n_samples",
+                            "tau_peak_MPa"]
+    weak_row = dict(zip(table[0], table[1]))
+    assert float(weak_row["tau_peak_MPa"]) == pytest.approx(0.72, abs=0.02)
+    assert float(weak_row["d_peak_mm"]) == pytest.approx(2.1, abs=0.1)
+    assert float(weak_row["tau_peak_std"]) == pytest.approx(0.02, abs=0.01)
+    assert dict(zip(table[0], table[2]))["tau_peak_std"] == ""      # one sample: no spread
+    assert 0.0 < float(weak_row["bonds_broken_share"]) < 1.0
+    image = iio.imread(out / "compare.png")
+    assert image.ndim == 3 and image[..., :3].std() > 5
+
+
+def test_run_numbers_and_mean_curve_of_two_samples(tmp_path):
+    from tcd import figures
+    run = _run(tmp_path, "r", [(1, 0.8e6, 2.0e-3), (2, 1.0e6, 2.4e-3)])
+    _, samples = figures.load_run(run)
+    numbers = compare.run_numbers(samples)
+    taus = [s.tau_peak * 1e-6 for s in samples]
+    assert numbers["n_samples"] == 2
+    assert numbers["tau_peak_MPa"] == pytest.approx(np.mean(taus))
+    assert numbers["tau_peak_std"] == pytest.approx(np.std(taus))       # population std
+    d, tau = compare.mean_curve(samples)
+    k = len(d) // 2
+    expected = np.mean([np.interp(d[k], s.displacement, s.smoothed) for s in samples])
+    assert d[-1] == pytest.approx(2.5e-3) and tau[k] == pytest.approx(expected)
+
+
+def test_differing_settings_leave_out_a_run_without_scenario():
+    a = {"bond": {"yield_stress_MPa": 1.7}, "stage": [{"kind": "shear", "gap_mm": 1.0}]}
+    b = {"bond": {"yield_stress_MPa": 1.7}, "stage": [{"kind": "shear", "gap_mm": 0.5}]}
+    assert compare.differing_settings([a, b, None]) == ["stage[1].gap_mm"]
+    assert compare.differing_settings([a, a]) == []
+
+
+def test_compare_refuses_what_cannot_be_compared(tmp_path, capsys):
+    a = _run(tmp_path, "a", [(1, 0.8e6, 2.0e-3)])
+    b = _run(tmp_path / "other", "a", [(1, 0.9e6, 2.1e-3)])
+    with pytest.raises(ValueError, match="repeat a name"):
+        compare.compare_runs([a, b], tmp_path / "o")
+    with pytest.raises(ValueError, match="1 labels for 2 run directories"):
+        compare.compare_runs([a, b], tmp_path / "o", labels=["x"])
+    assert not (tmp_path / "o").exists()            # nothing written on a refusal
+    assert main(["compare", str(a), "--out", str(tmp_path / "o")]) == 2
+    assert "at least two run directories" in capsys.readouterr().err
+    assert main(["compare", str(a), str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such run directory" in capsys.readouterr().err
+    assert main(["compare", str(a), str(b), "--labels", "first,second",
+                 "--out", str(tmp_path / "o")]) == 0
+    printed = capsys.readouterr().out.split()
+    assert str(tmp_path / "o" / "compare.md") in printed
+    md = (tmp_path / "o" / "compare.md").read_text()
+    assert "| first |" in md and "do not differ" in md
+    assert math.isfinite(float((tmp_path / "o" / "compare.csv").read_text().splitlines()[1]
+                               .split(",")[2]))
