@@ -151,6 +151,7 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
 def table_markdown(runs: list[dict], keys: list[str]) -> str:
     head = ["run", *keys, "samples", "peak τ (MPa)", "at d (mm)", "τ at the end (MPa)",
             "bonds broken", "folder"]
+    unfinished = [r["label"] for r in runs if r["summary"] is None]
     lines = ["Runs compared: each run's mean ± population std over its samples (peak of the "
              "smoothed curve, as its Table 2), and the scenario settings in which the runs "
              "differ.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -165,6 +166,9 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
             os.fspath(r["dir"])]) + " |")
     if not keys:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
+    if unfinished:
+        lines += ["", f"No summary.json in {', '.join(unfinished)}: unfinished (or stopped) "
+                      "runs, their curves as far as their series go."]
     return "\n".join(lines) + "\n"
 
 

@@ -104,6 +104,10 @@ def test_compare_refuses_what_cannot_be_compared(tmp_path, capsys):
     printed = capsys.readouterr().out.split()
     assert str(tmp_path / "o" / "compare.md") in printed
     md = (tmp_path / "o" / "compare.md").read_text()
-    assert "| first |" in md and "do not differ" in md
+    assert "| first |" in md and "do not differ" in md and "unfinished" not in md
+    (b / "summary.json").unlink()                   # a run still going, or stopped
+    assert main(["compare", str(a), str(b), "--labels", "first,second",
+                 "--out", str(tmp_path / "o")]) == 0
+    assert "No summary.json in second: unfinished" in (tmp_path / "o" / "compare.md").read_text()
     assert math.isfinite(float((tmp_path / "o" / "compare.csv").read_text().splitlines()[1]
                                .split(",")[2]))
