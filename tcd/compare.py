@@ -17,6 +17,7 @@ import csv
 import io as _stdio
 import math
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,11 @@ def differing_settings(scenarios: list[dict | None]) -> list[str]:
     keys = list(dict.fromkeys(k for f in flats for k in f))
     missing = object()
     return [k for k in keys if len({repr(f.get(k, missing)) for f in flats}) > 1]
+
+
+def _short(text: str, width: int = 28) -> str:
+    """`text`, or its last `width` - 1 characters after an ellipsis (a path's tail tells most)."""
+    return text if len(text) <= width else "…" + text[-(width - 1):]
 
 
 def _shown(value) -> str:
@@ -196,10 +202,12 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
                 ax.plot(s.displacement * 1e3, s.smoothed * 1e-6, color=color, lw=0.6,
                         alpha=0.35, zorder=1)
             d, tau = mean_curve(r["samples"])
-            shown = "; ".join(f"{k.split('.')[-1]} {r['settings'][k]}" for k in keys[:3])
+            shown = "; ".join(f"{k.split('.')[-1]} {_short(r['settings'][k])}" for k in keys[:3])
+            label = (f"{r['label']} ({r['n_samples']} sample{'s' if r['n_samples'] != 1 else ''}"
+                     f"{': ' + shown if shown else ''})")
+            # a long label (a file path, many settings) would squeeze the axes to nothing
             ax.plot(d * 1e3, tau * 1e-6, color=color, lw=2.0, zorder=2,
-                    label=f"{r['label']} ({r['n_samples']} sample{'s' if r['n_samples'] != 1 else ''}"
-                          f"{': ' + shown if shown else ''})")
+                    label="\n".join(textwrap.wrap(label, 90)))
             xerr = r["d_peak_std"] if math.isfinite(r["d_peak_std"]) else None
             yerr = r["tau_peak_std"] if math.isfinite(r["tau_peak_std"]) else None
             ax.errorbar(r["d_peak_mm"], r["tau_peak_MPa"], xerr=xerr, yerr=yerr, fmt="o",

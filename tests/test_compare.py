@@ -111,3 +111,19 @@ def test_compare_refuses_what_cannot_be_compared(tmp_path, capsys):
     assert "No summary.json in second: unfinished" in (tmp_path / "o" / "compare.md").read_text()
     assert math.isfinite(float((tmp_path / "o" / "compare.csv").read_text().splitlines()[1]
                                .split(",")[2]))
+
+
+def test_long_labels_and_settings_do_not_squeeze_the_plot_away(tmp_path):
+    """A label or a differing setting as long as a file path made matplotlib's layout
+    collapse the axes (and a `tcd compare` of session 49 take 24 GB): they are shortened and
+    wrapped."""
+    import warnings
+    a = _run(tmp_path, "a", [(1, 0.8e6, 2.0e-3)])
+    b = _run(tmp_path, "b", [(1, 0.9e6, 2.1e-3)])
+    text = (b / "scenario.toml").read_text()
+    (b / "scenario.toml").write_text(text.replace('sample = "{seed}.h5"', 'sample = "'
+                                                  + "/very/long/folder" * 12 + '/{seed}.h5"'))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        compare.compare_runs([a, b], tmp_path / "o", labels=["x" * 200, "y"])
+    assert "stage[1].sample" in (tmp_path / "o" / "compare.md").read_text()
