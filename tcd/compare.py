@@ -142,11 +142,7 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
         flat = _flat(r["scenario"]) if r["scenario"] is not None else {}
         r["settings"] = {k: _shown(flat.get(k)) if r["scenario"] is not None else "?"
                          for k in keys}
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"--out {out_dir}: cannot create the folder: "
-                         f"{exc.strerror or exc}") from None
+    figures.make_folder(out_dir)
     written: list[Path] = []
     _figure(runs, keys, out_dir / "compare.png", written)
     figures._write_text(out_dir / "compare.md", table_markdown(runs, keys), written)

@@ -735,6 +735,16 @@ def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -
         written.append(out)
 
 
+def make_folder(out_dir: Path) -> None:
+    """Create the output folder `out_dir` (and its parents); a failure is a ValueError naming
+    it (`--out`)."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out_dir}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
+
+
 def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     """Write Fig. 4 (png, pdf), Table 2 (md, csv, png), bonds_broken.png and, with `render`,
     Fig. 2 and Fig. 3 of the run in `run_dir` into `out_dir` (default run_dir/figures).
@@ -754,11 +764,7 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
                          "a folder)")
     summary, samples = load_runs(run_dirs)
     run_dir = run_dirs[0]
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"--out {out_dir}: cannot create the folder: "
-                         f"{exc.strerror or exc}") from None
+    make_folder(out_dir)
     written: list[Path] = []
 
     figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written,
