@@ -78,22 +78,20 @@ def run_numbers(samples: list) -> dict:
         return float(values.mean()), float(values.std()) if values.size > 1 else math.nan
 
     def broken_share(s):
-        ser = s.series
-        keys = ("bonds_intact", "bonds_broken_tension", "bonds_broken_shear")
-        if not all(k in ser and len(ser[k]) for k in keys):
-            return math.nan
-        total = sum(float(ser[k][0]) for k in keys)
-        broken = float(ser["bonds_broken_tension"][-1]) + float(ser["bonds_broken_shear"][-1])
-        return broken / total if total > 0 else math.nan
+        # the initial bonds as Fig. 4's companion counts them (intact + broken at the start)
+        ser, total = s.series, figures._bonds_total(s, None)
+        ends = [ser[k][-1] for k in ("bonds_broken_tension", "bonds_broken_shear")
+                if k in ser and len(ser[k])]
+        return float(sum(ends)) / total if len(ends) == 2 and total > 0 else math.nan
 
     out = {"n_samples": len(samples)}
-    for key, values in (("tau_peak_MPa", [s.tau_peak * 1e-6 for s in samples]),
-                        ("d_peak_mm", [s.d_peak * 1e3 for s in samples]),
-                        ("tau_end_MPa", [float(s.smoothed[-1]) * 1e-6 if s.smoothed.size
-                                         else math.nan for s in samples]),
-                        ("bonds_broken_share", [broken_share(s) for s in samples])):
-        out[key], out[key.replace("_MPa", "").replace("_mm", "").replace("_share", "")
-                      + "_std"] = stats(values)
+    for key, std_key, values in (
+            ("tau_peak_MPa", "tau_peak_std", [s.tau_peak * 1e-6 for s in samples]),
+            ("d_peak_mm", "d_peak_std", [s.d_peak * 1e3 for s in samples]),
+            ("tau_end_MPa", "tau_end_std", [float(s.smoothed[-1]) * 1e-6 if s.smoothed.size
+                                            else math.nan for s in samples]),
+            ("bonds_broken_share", "bonds_broken_std", [broken_share(s) for s in samples])):
+        out[key], out[std_key] = stats(values)
     return out
 
 

@@ -767,8 +767,9 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     make_folder(out_dir)
     written: list[Path] = []
 
+    paper_test = is_paper_test(summary, samples)
     figure_stress_displacement(samples, out_dir / "fig4_stress_displacement.png", written,
-                               paper_test=is_paper_test(summary, samples))
+                               paper_test=paper_test)
     if summary is None:
         state = "unreadable" if (run_dir / SUMMARY_NAME).exists() else "missing"
         warnings.warn(f"{run_dir / SUMMARY_NAME} {state}: Table 2 from the series peaks",
@@ -776,7 +777,6 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     if several:
         io.write_json(out_dir / STUDY_SUMMARY_NAME, summary)
         written.append(out_dir / STUDY_SUMMARY_NAME)
-    paper_test = is_paper_test(summary, samples)
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples),
                        paper_test)
     note = "" if paper_test else not_compared_note(summary)
