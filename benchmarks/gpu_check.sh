@@ -71,6 +71,41 @@ s38b)       # session 38, second call if the machine is still warm (DEADLINE = w
     stage scaling_1e6 200 python3 -m tcd bench scaling --sizes 1000000 --steps 10 --settle 0.3 \
         --arch gpu --out "$O/scaling_gpu" --json --check-every 4
     ;;
+s50)        # session 50, one call (DEADLINE=540, timeout_s 570; samples/regenerated and renders
+            # untracked for the call so that the tree and the wheels fit the tool's 64 MiB): the
+            # resident shear on today's code (body momentum since session 38), at 256 and 1024
+            # threads per block; the whole pipeline on the GPU (tiny.toml: prepare, bond, shear,
+            # figures); the GPU tests (time-outs are the launch-bound long tests, not failures);
+            # the resident step's kernel profile; the five-sample study for what is left, at the
+            # faster block size of the two
+    stage shear_resident 75 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+    rc=$?
+    T=256
+    if [ $rc -ne 124 ]; then
+        stage shear_resident_1024 45 env TCD_RESIDENT_THREADS=1024 python3 -m tcd bench shear --sample "$S" --time 0.02 --arch gpu --json --check-every 4 --warm-start-extrapolation 0.5 --schedule resident
+        T=$(python3 - "$O" <<'PY'
+import json, sys
+def fig(name):
+    try:
+        text = open(f"{sys.argv[1]}/{name}.txt").read()
+        return json.loads(text[text.index("{"):text.rindex("}") + 1])["seconds_per_particle_step"]
+    except Exception:
+        return float("inf")
+print(1024 if fig("shear_resident_1024") < fig("shear_resident") else 256)
+PY
+)
+    fi
+    TAIL=8 stage tiny_e2e 110 python3 -m tcd run scenarios/tiny.toml --arch gpu --out /tmp/tiny_gpu
+    cp /tmp/tiny_gpu/summary.json "$O/tiny_summary.json" 2>/dev/null
+    TAIL=40 stage pytest_gpu 150 python3 -m pytest -p no:cacheprovider --arch gpu -n 16 --dist load \
+        --timeout 110 -q -rfE --tb=line tests/test_resident.py tests/test_engine.py tests/test_bonds.py tests/test_batch.py
+    [ $rc -ne 124 ] && TAIL=40 stage profile_resident 50 python3 benchmarks/profile.py shear --sample "$S" --time 0.01 --arch gpu --schedule resident --top 35
+    if [ $rc -ne 124 ]; then
+        echo "study at $T threads per block"
+        TAIL=12 stage study_gpu 300 env TCD_RESIDENT_THREADS=$T python3 -m tcd run scenarios/leutner_shear_gpu.toml --batch --arch gpu --out /tmp/study_gpu
+        python3 benchmarks/study_series.py /tmp/study_gpu/batch_checkpoint.h5 > "$O/study_series.csv" 2>&1
+    fi
+    ;;
 next)       # next session, first call (DEADLINE=565). Session 38 (H200) measured the resident
             # schedule: its tests pass on the GPU (23 of 24, the 24th a 13th-digit residual
             # difference from the coloured schedule, now compared to 1e-9 there); the seed-1
