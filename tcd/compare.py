@@ -128,8 +128,7 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
         if not run_dir.is_dir():
             raise FileNotFoundError(f"{run_dir}: run directory not found")
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"--out {out_dir}: exists and is not a directory")
+    figures.refuse_file(out_dir)
     runs = []
     for label, run_dir in zip(labels, run_dirs):
         summary, samples = figures.load_run(run_dir)

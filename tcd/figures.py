@@ -735,6 +735,14 @@ def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -
         written.append(out)
 
 
+def refuse_file(out_dir: Path) -> None:
+    """A ValueError naming `out_dir` (`--out`) when it exists and is not a directory, before
+    any run is read (the outputs go into a folder)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--out {out_dir}: exists and is not a directory (the outputs go into "
+                         "a folder)")
+
+
 def make_folder(out_dir: Path) -> None:
     """Create the output folder `out_dir` (and its parents); a failure is a ValueError naming
     it (`--out`)."""
@@ -759,9 +767,7 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     if several and out_dir is None:
         raise ValueError("several run directories: give the folder for their figures (--out)")
     out_dir = Path(out_dir) if out_dir is not None else run_dirs[0] / "figures"
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"--out {out_dir}: exists and is not a directory (the figures go into "
-                         "a folder)")
+    refuse_file(out_dir)
     summary, samples = load_runs(run_dirs)
     run_dir = run_dirs[0]
     make_folder(out_dir)

@@ -95,6 +95,12 @@ def test_compare_refuses_what_cannot_be_compared(tmp_path, capsys):
     with pytest.raises(ValueError, match="1 labels for 2 run directories"):
         compare.compare_runs([a, b], tmp_path / "o", labels=["x"])
     assert not (tmp_path / "o").exists()            # nothing written on a refusal
+    taken = tmp_path / "taken.png"
+    taken.write_bytes(b"an image")
+    for command in (["compare", str(a), str(b), "--labels", "x,y"], ["figures", str(a)]):
+        assert main(command + ["--out", str(taken)]) == 2
+        assert f"--out {taken}: exists and is not a directory" in capsys.readouterr().err
+    assert taken.read_bytes() == b"an image"
     assert main(["compare", str(a), "--out", str(tmp_path / "o")]) == 2
     assert "at least two run directories" in capsys.readouterr().err
     assert main(["compare", str(a), str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
