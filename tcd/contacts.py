@@ -291,9 +291,14 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_a
             for a in range(1, m):
                 key = nb.j[base + a]
                 b = a - 1
-                while b >= 0 and nb.j[base + b] > key:
-                    nb.j[base + b + 1] = nb.j[base + b]
-                    b -= 1
+                # nested tests: Taichi's `and` evaluates both sides (no short circuit by
+                # default), which read nb.j[base - 1], before the field at base 0
+                while b >= 0:
+                    if nb.j[base + b] > key:
+                        nb.j[base + b + 1] = nb.j[base + b]
+                        b -= 1
+                    else:
+                        break
                 nb.j[base + b + 1] = key
             nb.x_ref[i] = p.x[i]
         else:

@@ -1687,8 +1687,9 @@ def colour_bid(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r,
         m = item_body_count(ct, bd, q, nb, blocks)
         for k in range(m):
             b = item_body(ct, bd, q, nb, n, k, blocks)
-            if b >= 0 and cs.claim[b] == r:
-                free = 0
+            if b >= 0:          # nested: Taichi's `and` reads both sides (claim[-1] of a wall)
+                if cs.claim[b] == r:
+                    free = 0
         if free == 1:
             key = colour_key(it, q, m)
             for k in range(m):
@@ -1707,8 +1708,9 @@ def colour_take(n, ct: ti.template(), bd: ti.template(), cs: ti.template(), q, r
         win = 1
         for k in range(m):
             b = item_body(ct, bd, q, nb, n, k, blocks)
-            if b >= 0 and (cs.best[b] != key or cs.claim[b] == r):
-                win = 0
+            if b >= 0:          # nested, as in colour_bid
+                if cs.best[b] != key or cs.claim[b] == r:
+                    win = 0
         if win == 1:
             cs.item_colour[q] = r
             for k in range(m):
