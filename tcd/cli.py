@@ -722,7 +722,11 @@ def main(argv=None) -> int:
         if os.environ.get("SOURCE_DATE_EPOCH", "").strip():    # refused now, not at a write
             from . import io
             io.created_time()
-        return args.handler(args)
+        if args.command == "run":           # its own handlers: a stop at the end of a step
+            return args.handler(args)
+        from .signals import TermAsInterrupt
+        with TermAsInterrupt():
+            return args.handler(args)
     except BrokenPipeError:
         # the reader went away (`tcd info FILE | head`): stop quietly, as Unix tools do
         devnull = os.open(os.devnull, os.O_WRONLY)

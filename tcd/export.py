@@ -21,10 +21,20 @@ opening `<stem>_particles.pvd` gives a time series:
              colour and scale the tubes by it to see the force chains. Contacts with walls are
              not drawn: their sum is the wall's force.
   bonds      one line per bond. Cell data: `state` (0 intact, 1 broken in tension, 2 broken in
-             shear), `intact` (1/0), `impulse`, `normal_impulse`, `normal_force` as for contacts.
+             shear), `intact` (1/0), `impulse`, `normal_impulse`, `tangential_impulse`,
+             `normal_force` as for contacts.
   walls      planes as discs (radius `walls/radius`) and cylinders as shells over their axial
              extent, triangulated. Cell data: `wall` (index), `kind` (0 plane, 1 cylinder),
-             `force` (N, the force the particles exert on that wall).
+             `force` (N, the force the particles exert on that wall, repeated on each of its
+             triangles for colouring: integrating or summing it over cells multiplies it).
+             Field data: `wall_force` (N, one row per wall, in wall index order).
+
+A frame at the same time as the next one (the end of a preparation and the start of its shear,
+before and after bonding) gets its .vtu files but no entry in the collections, which list one
+file per time: the later, the state the run goes on from. A part with nothing in it (no bond
+before the bonding, no contact in a first frame) is a valid VTK file with the particles' points
+and no cells, which VTK, ParaView and PyVista read; meshio 5.3 cannot read back a .vtu without
+cells.
 
 Every file is written atomically (io.atomic_path), the collections last: an interrupted export
 leaves complete files only. Nothing is computed that is not in the file except the derived
@@ -236,10 +246,46 @@ def _mesh(frame, part, h):
     return meshio.Mesh(points, [("triangle", tris)], cell_data={k: [v] for k, v in data.items()})
 
 
+def _wall_forces(frame) -> np.ndarray:
+    """Each wall's force (N), one row per wall: the walls file's field data `wall_force`."""
+    if "walls/force" in frame:
+        return np.asarray(frame["walls/force"], dtype=float).reshape(-1, 3)
+    return np.zeros((len(frame.get("walls/kind", ())), 3))
+
+
+def _add_field_data(path, name: str, values: np.ndarray) -> None:
+    """Put `values` (rows of 3) into the .vtu at `path` as FieldData `name` (meshio 5.3 writes
+    no field data to a .vtu; VTK, ParaView, PyVista and meshio's reader read it). The numbers
+    in ASCII, each as Python's repr: the same doubles when read back."""
+    text = Path(path).read_text()
+    head = "<UnstructuredGrid>\n"
+    if head not in text:
+        raise ValueError(f"{path}: no <UnstructuredGrid> element to add field data to")
+    numbers = " ".join(repr(float(v)) for v in np.asarray(values, float).ravel())
+    block = (f'<FieldData>\n<DataArray type="Float64" Name="{name}" '
+             f'NumberOfTuples="{len(values)}" NumberOfComponents="3" format="ascii">\n'
+             f'{numbers}\n</DataArray>\n</FieldData>\n')
+    Path(path).write_text(text.replace(head, head + block, 1))
+
+
 # --- writing ---------------------------------------------------------------------------------
+def _one_per_time(entries) -> list:
+    """The collection's (time, file) entries with one file per time: of frames at the same
+    time (the end of a preparation and the start of its shear, before and after bonding) the
+    last, which is the state the run goes on from. A reader of a .pvd (ParaView, PyVista)
+    shows one dataset per time, the first listed, so listing both hid the bonded one."""
+    kept = []
+    for t, name in entries:
+        if kept and kept[-1][0] == t:
+            kept[-1] = (t, name)
+        else:
+            kept.append((t, name))
+    return kept
+
+
 def _pvd(entries) -> str:
     rows = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(name)}/>'
-                     for t, name in entries)
+                     for t, name in _one_per_time(entries))
     return ('<?xml version="1.0"?>\n'
             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
             f'  <Collection>\n{rows}\n  </Collection>\n</VTKFile>\n')
@@ -270,6 +316,8 @@ def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = Non
         name = f"{stem}_{part}_{frame['index']:06d}.vtu"
         with io.atomic_path(out_dir / name) as tmp:
             meshio.write(tmp, mesh, file_format="vtu")
+            if part == "walls":
+                _add_field_data(tmp, "wall_force", _wall_forces(frame))
         written.append(out_dir / name)
         collections[part].append((float(frame["time"]), name))
     for part, entries in collections.items():

@@ -127,6 +127,18 @@ FRAME_SCHEMA = {
     "bonds/broken_position": ("m", None, (3,)),
 }
 
+# units of a simulation state's arrays (Simulation.state_dict: prepared samples, checkpoints),
+# written as each dataset's ``units`` attribute; a key not named here gets none
+STATE_UNITS = {
+    **{key: unit for key, (unit, _, _) in FRAME_SCHEMA.items()},
+    "particles/inv_mass": "1/kg", "particles/inv_inertia": "1/(kg m^2)",
+    "particles/f_ext": "N", "particles/system": "1",
+    "contacts/impulse_old": "N s", "contacts/start": "1",
+    "bonds/g0": "m", "bonds/created": "s", "bonds/area": "m^2", "bonds/d_t": "m",
+    "bonds/hd_n": "m", "bonds/hk_n": "m", "bonds/hd_t": "m", "bonds/hk_t": "m",
+    "bonds/broken_pos": "m", "bonds/impulse_prev": "N s", "bonds/turn": "N s",
+}
+
 _FRAME_META_KEYS = ("time", "step", "stage")
 _ROOT_ATTRS = ("schema_version", "tcd_file", "tcd_version", "created", "scenario", "meta")
 _STORABLE_KINDS = "biufcSV"  # bool, ints, floats, complex, bytes, compound; not object/unicode
@@ -738,7 +750,9 @@ def save_checkpoint(path, arrays: dict, meta: dict) -> None:
             f.attrs["meta"] = meta_text
             group = f.create_group("arrays")
             for key, arr in prepared.items():
-                _dataset(group, key, arr)
+                ds = _dataset(group, key, arr)
+                if key in STATE_UNITS:
+                    ds.attrs["units"] = STATE_UNITS[key]
 
 
 def load_checkpoint(path) -> tuple[dict, dict]:

@@ -50,6 +50,8 @@ from . import observables as obs
 from . import packing
 from .walls import Wall, cylinder, plane
 
+# the prepare series' `phase` column: index in this tuple (its attribute `phase_names`)
+PREPARE_PHASES = ("pour", "vibrate", "hold", "confine")
 SETTLE_CHECK_EVERY = 50
 
 
@@ -245,7 +247,7 @@ class Prepare:
 
     def record(self, sim, phase, motion=None) -> dict:
         """The series row of a preparation step (`motion`, the shear's, is not needed)."""
-        row = {"phase": ["pour", "vibrate", "hold", "confine"].index(phase.name),
+        row = {"phase": PREPARE_PHASES.index(phase.name),
                "layer": phase.info.get("layer", 0)}
         if len(sim.walls) > 2:
             row["top_plate_force"] = float(sim.wall_force(2)[2])

@@ -35,7 +35,8 @@ from . import __version__, backend, io
 from . import observables as obs
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
-from .protocols import PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
+from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
+from .signals import SignalScope as _SignalScope
 
 FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
               "walls/kind", "walls/point", "walls/direction", "walls/radius", "walls/extent",
@@ -730,32 +731,6 @@ def _run_sample_job(text, source, arch, precision, seed, sample_dir, resume, pro
     return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
-class _SignalScope:
-    """While open, `_handler` handles each of `signals`, installed only in the main thread and
-    only where the signal's default action is in force (Python's own handler for SIGINT,
-    SIG_DFL for others): a process started with a signal ignored keeps ignoring it. The
-    previous handlers come back on exit."""
-    signals: tuple = ()
-
-    def _handler(self, signum, frame):
-        raise NotImplementedError
-
-    def __enter__(self):
-        self._old = {}
-        if threading.current_thread() is threading.main_thread():
-            for signum in self.signals:
-                default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
-                if signal.getsignal(signum) == default:
-                    self._old[signum] = signal.signal(signum, self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        for signum, old in self._old.items():
-            signal.signal(signum, old)
-        self._old = {}
-        return False
-
-
 class DeferredInterrupt(_SignalScope):
     """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
     job) during a run takes effect at the end of the current step: the step loop writes a
@@ -990,7 +965,9 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                             if rec.get("stage_index", stage_idx) == stage_idx
                             and rec.get("stage") == stage.kind]
             numbers = proto.finish(sim, stage_phases)
-            attrs = {}
+            attrs = ({"phase_names": ", ".join(f"{k} {name}" for k, name in
+                                               enumerate(PREPARE_PHASES))}
+                     if stage.kind == "prepare" else {})
         _print_warnings(seed, numbers)
         numbers.update(solver_numbers(arrays, sim.settings.max_sweeps))
         numbers["wall_time_s"] = time.perf_counter() - t_stage
@@ -1041,8 +1018,10 @@ def _shear_numbers(proto, sim, phase, arrays: dict, states, first_frame) -> tupl
     frame) and the attributes of its series file."""
     x_start = io.read_frame(states, first_frame)["particles/x"] if first_frame is not None else None
     numbers = proto.finish(sim, phase, arrays, x_start)
-    attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "d_peak": numbers["d_peak_mm"] * 1e-3,
-             "smoothing_window": proto.cfg.smoothing_window_mm * 1e-3}
+    attrs = {"tau_peak": numbers["tau_peak_MPa"] * 1e6, "tau_peak_units": "Pa",
+             "d_peak": numbers["d_peak_mm"] * 1e-3, "d_peak_units": "m",
+             "smoothing_window": proto.cfg.smoothing_window_mm * 1e-3,
+             "smoothing_window_units": "m"}
     return numbers, attrs
 
 

@@ -1028,7 +1028,7 @@ class Simulation:
 
     _BOND_DEFAULTS = {"i": 0, "j": 0, "state": 0, "g0": 0.0, "created": 0.0, "area": 0.0,
                       "hd_n": 0.0, "hk_n": 0.0, "impulse": 0.0, "d_t": 0.0, "hd_t": 0.0,
-                      "hk_t": 0.0, "broken_time": np.nan, "broken_pos": 0.0, "impulse_prev": 0.0}
+                      "hk_t": 0.0, "broken_time": np.nan, "broken_pos": np.nan, "impulse_prev": 0.0}
     _BOND_VECTORS = ("impulse", "d_t", "hd_t", "hk_t", "broken_pos", "impulse_prev")
 
     def _bond_buffer(self, b: int) -> Bonds:
@@ -1670,4 +1670,4 @@ def check_state_arrays(d: dict) -> None:
     for key in Simulation._BOND_DEFAULTS:
         if "bonds/" + key in d and key not in ("i", "j", "state"):
             shape = (b, 3) if key in Simulation._BOND_VECTORS else (b,)
-            need("bonds/" + key, shape, finite=key != "broken_time")
+            need("bonds/" + key, shape, finite=key not in ("broken_time", "broken_pos"))

@@ -110,6 +110,8 @@ def test_walls_are_a_disc_and_a_cylinder_shell_with_their_forces(states, tmp_pat
     assert area == pytest.approx(2 * math.pi * 0.06 * 0.1, rel=2e-3)
     np.testing.assert_array_equal(m.cell_data["force"][0][wall == 0], np.tile([0, 0, -7.0], (s, 1)))
     np.testing.assert_array_equal(m.cell_data["kind"][0][wall == 1], io.WALL_CYLINDER)
+    # each wall's force once, as field data: summing the cells' copies gives a multiple
+    np.testing.assert_array_equal(m.field_data["wall_force"], frame()["walls/force"])
 
 
 def test_collections_list_the_frames_with_their_times(states, tmp_path):
@@ -120,6 +122,53 @@ def test_collections_list_the_frames_with_their_times(states, tmp_path):
     assert rows == [(0.75, "states_particles_000001.vtu"), (0.5, "states_particles_000000.vtu")]
     for _, name in rows:
         assert (tmp_path / "vtk" / name).is_file()
+
+
+def test_frames_at_one_time_are_listed_once_the_later(tmp_path):
+    """The end of a preparation and the start of its shear (before and after the bonding)
+    share a time: a .pvd reader shows the first dataset listed at a time, so the collection
+    lists the later one only (the state the run goes on from); both frames' files are written."""
+    path = tmp_path / "states.h5"
+    io.append_frame(path, frame(bonds_state=(0, 0)), time=0.5, step=10, stage="prepare",
+                    scenario_text=SCENARIO)
+    io.append_frame(path, frame(bonds_state=(0, 0)), time=0.5, step=10, stage="shear")
+    io.append_frame(path, frame(0.001, (2, 0)), time=0.75, step=20, stage="shear")
+    export.export(path, tmp_path / "vtk")
+    for part in export.PARTS:
+        root = ET.parse(tmp_path / "vtk" / f"states_{part}.pvd").getroot()
+        rows = [(float(d.get("timestep")), d.get("file")) for d in root.iter("DataSet")]
+        assert rows == [(0.5, f"states_{part}_000001.vtu"), (0.75, f"states_{part}_000002.vtu")]
+        assert all((tmp_path / "vtk" / f"states_{part}_{k:06d}.vtu").is_file() for k in range(3))
+    assert export._one_per_time([(0.0, "a"), (0.1, "b"), (0.1, "c"), (0.0, "d")]) == [
+        (0.0, "a"), (0.1, "c"), (0.0, "d")]        # frames asked for in another order: kept
+
+
+def test_sigterm_stops_an_export_without_a_temporary_left(states, tmp_path):
+    """SIGTERM (`kill`, `timeout`, a scheduler) stops `tcd export` as Ctrl-C does: exit 130,
+    the file being written removed, the files written before whole (it used to kill the
+    process and leave a `.NAME.tmp` among the outputs)."""
+    import subprocess
+    import sys
+    out = tmp_path / "vtk"
+    script = f"""
+import os, signal, sys
+import meshio
+from tcd import cli
+real, calls = meshio.write, [0]
+def write(path, mesh, **kw):
+    calls[0] += 1
+    real(path, mesh, **kw)
+    if calls[0] == 3:           # the third file written into its temporary, then the signal
+        os.kill(os.getpid(), signal.SIGTERM)
+meshio.write = write
+sys.exit(cli.main(["export", {str(states)!r}, "--out", {str(out)!r}]))
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == cli.EXIT_INTERRUPTED, (proc.returncode, proc.stderr)
+    assert "interrupted" in proc.stderr
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["states_contacts_000000.vtu", "states_particles_000000.vtu"], names
 
 
 def test_an_empty_part_is_a_valid_file_without_cells(tmp_path):

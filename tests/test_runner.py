@@ -93,6 +93,28 @@ def test_tiny_scenario_runs_end_to_end_through_tcd_run(tmp_path):
     assert len(series["shear_stress"]) == len(series["displacement"]) > 10
     assert (sample / "shear_series.csv").read_text().splitlines()[0].startswith("time [s]")
     assert "frames" in io.info(sample / "states.h5")
+    # what a reader needs to make sense of the files (session 50's output audit): the series'
+    # codes and units, every array of the prepared sample with its units, and no made-up
+    # breakage point for a bond that never broke
+    import h5py
+    with h5py.File(sample / "prepare_series.h5") as f:
+        assert f.attrs["phase_names"] == "0 pour, 1 vibrate, 2 hold, 3 confine"
+        assert set(np.unique(f["phase"][()])) == {0, 1, 2, 3}
+    with h5py.File(sample / "shear_series.h5") as f:
+        assert f.attrs["tau_peak"] == pytest.approx(s["tau_peak_MPa"] * 1e6)
+        assert [f.attrs[k + "_units"] for k in ("tau_peak", "d_peak", "smoothing_window")] == [
+            "Pa", "m", "m"]
+    for name in ("prepared.h5", "checkpoint.h5"):
+        with h5py.File(sample / name) as f:
+            units = {}
+            f["arrays"].visititems(lambda key, ds: units.setdefault(key, ds.attrs.get("units"))
+                                   if isinstance(ds, h5py.Dataset) else None)
+        assert units and units == {k: io.STATE_UNITS[k] for k in units}, name
+    last = io.read_frame(sample / "states.h5", -1)
+    intact = last["bonds/state"] == io.BOND_INTACT
+    assert intact.any() and (~intact).any()
+    assert np.all(np.isnan(last["bonds/broken_position"][intact]))
+    assert np.all(np.isfinite(last["bonds/broken_position"][~intact]))
     # refuses to overwrite a finished run without --resume
     assert run_tcd(["run", str(ROOT / "scenarios" / "tiny.toml"), "--out", str(out)]) == 2
 
