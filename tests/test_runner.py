@@ -1169,7 +1169,10 @@ def test_shear_series_file_holds_si_units_and_peak_attributes(tmp_path):
                                                                         "d_peak_mm": 2.4})
     numbers, attrs = runner._shear_numbers(proto, None, None, {}, tmp_path / "states.h5", None)
     assert numbers == {"tau_peak_MPa": 0.9, "d_peak_mm": 2.4}
-    assert attrs == pytest.approx({"tau_peak": 0.9e6, "d_peak": 2.4e-3, "smoothing_window": 1e-4})
+    assert {k: attrs[k] for k in ("tau_peak", "d_peak", "smoothing_window")} == pytest.approx(
+        {"tau_peak": 0.9e6, "d_peak": 2.4e-3, "smoothing_window": 1e-4})
+    assert {k: v for k, v in attrs.items() if k.endswith("_units")} == {
+        "tau_peak_units": "Pa", "d_peak_units": "m", "smoothing_window_units": "m"}
     arrays = {k: np.arange(3.0) for k in ("time", "displacement", "shear_force", "shear_stress",
                                           "kinetic_energy", "top_plate_force", "top_plate_z", "sweeps")}
     runner._write_series(tmp_path, "shear", arrays, attrs)
