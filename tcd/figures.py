@@ -228,8 +228,9 @@ def load_sample(seed: str, directory: Path) -> SampleCurves:
                         tau_peak, d_peak, index, series)
 
 
-def load_run(run_dir) -> tuple[dict | None, list[SampleCurves]]:
-    """(summary or None, usable samples); unusable samples are skipped with a warning.
+def load_run(run_dir, skipped: list | None = None) -> tuple[dict | None, list[SampleCurves]]:
+    """(summary or None, usable samples); unusable samples are skipped with a warning, or,
+    given a list `skipped`, appended to it as (seed, reason) for the caller to report.
 
     Raises FileNotFoundError if run_dir is not a directory, ValueError if no sample is usable.
     """
@@ -253,7 +254,10 @@ def load_run(run_dir) -> tuple[dict | None, list[SampleCurves]]:
         try:
             samples.append(load_sample(seed, directory))
         except (OSError, ValueError, KeyError) as exc:
-            warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+            if skipped is None:
+                warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+            else:
+                skipped.append((seed, exc))
     if not samples:
         raise ValueError(f"{run_dir}: no usable sample (no readable "
                          f"sample_<seed>/{SERIES_NAME}); nothing to plot")
@@ -278,8 +282,9 @@ def _summary_problem(summary) -> str | None:
 
 def summary_from_samples(samples: list[SampleCurves]) -> dict:
     """A minimal summary (samples, mean, std) from the series when summary.json is missing."""
-    rows = [{"seed": s.seed, "tau_peak_MPa": s.tau_peak * 1e-6, "d_peak_mm": s.d_peak * 1e3}
-            for s in samples]
+    # a seed read from a folder name is text: a number, as the runner's summaries write it
+    rows = [{"seed": int(s.seed) if re.fullmatch(r"-?\d+", str(s.seed)) else s.seed,
+             "tau_peak_MPa": s.tau_peak * 1e-6, "d_peak_mm": s.d_peak * 1e3} for s in samples]
     out = {"samples": rows, "mean": {}, "std": {}}
     for key in ("tau_peak_MPa", "d_peak_mm"):
         values = np.array([r[key] for r in rows])
@@ -413,13 +418,19 @@ def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
         if not run_dir.is_dir():
             raise FileNotFoundError(f"{run_dir}: run directory not found")
     check_one_study(run_dirs)
-    parts, samples = [], []
+    parts, samples, skipped = [], [], []
     for run_dir in run_dirs:
-        summary, found = load_run(run_dir)
+        summary, found = load_run(run_dir, skipped)
         parts.append((run_dir, summary if summary is not None else summary_from_samples(found)))
         samples += found
     merged = merge_summaries(parts)     # raises on a seed found twice
     samples.sort(key=lambda s: _seed_key(s.seed))
+    # a seed unfinished in one part (an interrupted invocation) and finished in another is
+    # not skipped: only the seeds missing from the study are reported
+    have = {str(s.seed) for s in samples}
+    for seed, exc in skipped:
+        if str(seed) not in have:
+            warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
     return merged, samples
 
 

@@ -252,6 +252,26 @@ def test_figures_of_a_study_split_across_runs(tmp_path):
     assert not (runs[0] / "figures").exists()       # the parts are left as they are
 
 
+def test_a_seed_unfinished_in_one_part_and_finished_in_another_is_not_skipped(tmp_path):
+    """Part a was interrupted as it began seed 13 (no summary.json, an empty sample_13), which
+    part b then ran: the merge takes b's and says nothing of a's (session 50 saw "sample 4
+    skipped" for a study whose five samples were all drawn); a seed missing from every part is
+    still reported."""
+    import warnings
+    runs = _split_study(tmp_path)
+    (runs[0] / "summary.json").unlink()
+    (runs[0] / "sample_13").mkdir()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary, samples = figures.load_runs(runs)
+    assert [str(s.seed) for s in samples] == ["11", "12", "13"]
+    assert [smp["seed"] for smp in summary["samples"]] == [11, 12, 13]     # numbers, as written
+    assert not [w for w in caught if "sample 13" in str(w.message)], [str(w.message) for w in caught]
+    (runs[0] / "sample_14").mkdir()
+    with pytest.warns(FigureWarning, match="sample 14 skipped"):
+        figures.load_runs(runs)
+
+
 def test_figures_of_a_split_study_refuse_a_seed_twice_and_another_scenario(tmp_path):
     runs = _split_study(tmp_path / "twice", second_seeds=(12, 13))
     with pytest.raises(ValueError, match=r"sample 12 is in both .*a and .*b"):
