@@ -181,6 +181,7 @@ def _pair_data(frame, group, h):
 def _wall_mesh(frame):
     """Triangles of every wall (disc or cylinder shell) with per-cell wall index, kind, force."""
     kinds = np.asarray(frame.get("walls/kind", np.zeros(0, np.int32)))
+    forces = _wall_forces(frame)
     pts, tris, wall, kind, force = [], [], [], [], []
     base = 0
     phi = np.linspace(0.0, 2.0 * math.pi, WALL_SEGMENTS, endpoint=False)
@@ -212,8 +213,7 @@ def _wall_mesh(frame):
         base += sum(len(q) for q in pts[-2:])
         wall += [w] * count
         kind += [int(kinds[w])] * count
-        f = np.asarray(frame["walls/force"][w], dtype=float) if "walls/force" in frame else np.zeros(3)
-        force += [f] * count
+        force += [forces[w]] * count
     if not tris:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), {}
     data = {"wall": np.asarray(wall, np.int32), "kind": np.asarray(kind, np.int32),
@@ -253,6 +253,7 @@ def _wall_forces(frame) -> np.ndarray:
     return np.zeros((len(frame.get("walls/kind", ())), 3))
 
 
+# --- writing ---------------------------------------------------------------------------------
 def _add_field_data(path, name: str, values: np.ndarray) -> None:
     """Put `values` (rows of 3) into the .vtu at `path` as FieldData `name` (meshio 5.3 writes
     no field data to a .vtu; VTK, ParaView, PyVista and meshio's reader read it). The numbers
@@ -268,7 +269,6 @@ def _add_field_data(path, name: str, values: np.ndarray) -> None:
     Path(path).write_text(text.replace(head, head + block, 1))
 
 
-# --- writing ---------------------------------------------------------------------------------
 def _one_per_time(entries) -> list:
     """The collection's (time, file) entries with one file per time: of frames at the same
     time (the end of a preparation and the start of its shear, before and after bonding) the

@@ -185,8 +185,14 @@ def _sample_dirs(run_dir: Path, summary: dict | None) -> list[tuple[str, Path]]:
     return found
 
 
+def _seed_value(seed):
+    """A seed read as text (a folder name, a summary): an int where it is one, else the text."""
+    return int(seed) if re.fullmatch(r"-?\d+", str(seed)) else seed
+
+
 def _seed_key(seed: str):
-    return (0, int(seed), "") if re.fullmatch(r"-?\d+", seed) else (1, 0, seed)
+    value = _seed_value(seed)
+    return (0, value, "") if isinstance(value, int) else (1, 0, seed)
 
 
 def _series_attrs(path: Path) -> dict:
@@ -283,8 +289,8 @@ def _summary_problem(summary) -> str | None:
 def summary_from_samples(samples: list[SampleCurves]) -> dict:
     """A minimal summary (samples, mean, std) from the series when summary.json is missing."""
     # a seed read from a folder name is text: a number, as the runner's summaries write it
-    rows = [{"seed": int(s.seed) if re.fullmatch(r"-?\d+", str(s.seed)) else s.seed,
-             "tau_peak_MPa": s.tau_peak * 1e-6, "d_peak_mm": s.d_peak * 1e3} for s in samples]
+    rows = [{"seed": _seed_value(s.seed), "tau_peak_MPa": s.tau_peak * 1e-6,
+             "d_peak_mm": s.d_peak * 1e3} for s in samples]
     out = {"samples": rows, "mean": {}, "std": {}}
     for key in ("tau_peak_MPa", "d_peak_mm"):
         values = np.array([r[key] for r in rows])

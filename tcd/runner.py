@@ -36,7 +36,7 @@ from . import observables as obs
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
 from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
-from .signals import SignalScope as _SignalScope
+from .signals import SignalScope
 
 FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
               "walls/kind", "walls/point", "walls/direction", "walls/radius", "walls/extent",
@@ -731,12 +731,12 @@ def _run_sample_job(text, source, arch, precision, seed, sample_dir, resume, pro
     return run_sample(scn, seed, pathlib.Path(sample_dir), resume=resume, progress=progress)
 
 
-class DeferredInterrupt(_SignalScope):
+class DeferredInterrupt(SignalScope):
     """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
     job) during a run takes effect at the end of the current step: the step loop writes a
     checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
     where it was stopped (not from the last periodic checkpoint, or from nothing when none was
-    written yet). A second signal stops at once. Installed as _SignalScope says."""
+    written yet). A second signal stops at once. Installed as SignalScope says."""
     signals = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
@@ -748,12 +748,12 @@ class DeferredInterrupt(_SignalScope):
         self.pending = True
 
 
-class ForwardTerm(_SignalScope):
+class ForwardTerm(SignalScope):
     """While samples run in worker processes (`--jobs N`), a SIGTERM to the parent is passed on
     to the workers, each of which checkpoints at the end of its step and stops (their
     KeyboardInterrupt comes back through the futures), instead of killing the parent and
     leaving the workers running on their own. (Ctrl-C in a terminal reaches every process of
-    the job already.) Installed as _SignalScope says."""
+    the job already.) Installed as SignalScope says."""
     signals = (signal.SIGTERM,)
 
     def __init__(self, pool):
