@@ -22,7 +22,8 @@ import numpy as np
 
 from . import backend, contacts as ck, partitioned as pk, solver as sk, state as state_mod
 from .state import (MAX_PARTS, MAX_SWEEPS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
-                    Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, put, release)
+                    Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, get_rows, put, put_rows,
+                    release)
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured", "resident")
@@ -480,16 +481,12 @@ class Simulation:
             fixed = np.asarray(fixed, dtype=bool)
             inv_mass[fixed] = 0.0
             inv_inertia[fixed] = 0.0
-        put(p.radius, radius)
-        put(p.inv_mass, inv_mass)
-        put(p.inv_inertia, inv_inertia)
+        put_rows((p.radius, p.inv_mass, p.inv_inertia, p.x, p.v, p.w, p.f_ext, p.layer, p.system),
+                 (radius, inv_mass, inv_inertia, position, velocity, np.zeros((n, 3)),
+                  np.zeros((n, 3)),
+                  np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32),
+                  system.astype(np.int32)))
         self._inverse_masses = None         # inverse_masses(): read when first asked
-        put(p.x, position)
-        put(p.v, velocity)
-        put(p.w, np.zeros((n, 3)))
-        put(p.f_ext, np.zeros((n, 3)))
-        put(p.layer, np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32))
-        put(p.system, system.astype(np.int32))
         self.system_start = np.searchsorted(system, np.arange(self.systems + 1)).astype(np.int32)
         put(p.sys_start, self.system_start)
         # each particle's index in its sample (load_state_dict sets a renumbered state's)
@@ -1030,6 +1027,7 @@ class Simulation:
                       "hd_n": 0.0, "hk_n": 0.0, "impulse": 0.0, "d_t": 0.0, "hd_t": 0.0,
                       "hk_t": 0.0, "broken_time": np.nan, "broken_pos": np.nan, "impulse_prev": 0.0}
     _BOND_VECTORS = ("impulse", "d_t", "hd_t", "hk_t", "broken_pos", "impulse_prev")
+    _PARTICLE_STATE = ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")
 
     def _bond_buffer(self, b: int) -> Bonds:
         """A bond buffer for `b` bonds from the pool. Without bonds, the smallest buffer: 64
@@ -1048,10 +1046,12 @@ class Simulation:
         release(self.bonds)
         bd = self._bond_buffer(b)
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
+        values = []
         for key, default in self._BOND_DEFAULTS.items():
             shape = (b, 3) if key in self._BOND_VECTORS else (b,)
             arr = np.asarray(a[key]) if key in a else np.full(shape, default)
-            put(getattr(bd, key), arr[order].reshape(shape))
+            values.append(arr[order].reshape(shape))
+        put_rows([getattr(bd, key) for key in self._BOND_DEFAULTS], values)
         start = np.zeros(self.n + 1, np.int32)
         np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
         put(bd.start, np.cumsum(start))
@@ -1177,8 +1177,8 @@ class Simulation:
         impulse is bonds/impulse (its own, the next step's warm start) plus bonds/turn."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
         n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
-        d = {"particles/" + k: get(getattr(p, k), n)
-             for k in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")}
+        d = dict(zip(["particles/" + k for k in self._PARTICLE_STATE],
+                     get_rows([getattr(p, k) for k in self._PARTICLE_STATE], n)))
         if self.systems > 1:
             d["particles/system"] = get(p.system, n)
         if self.renumbered:
@@ -1195,8 +1195,8 @@ class Simulation:
             "walls/extent": np.array([w.extent for w in self.walls], float).reshape(nw, 2),
             "walls/force": get(wf.force, nw),
         })
-        for key in self._BOND_DEFAULTS:
-            d["bonds/" + key] = get(getattr(bd, key), b)
+        d.update(zip(["bonds/" + key for key in self._BOND_DEFAULTS],
+                     get_rows([getattr(bd, key) for key in self._BOND_DEFAULTS], b)))
         d["bonds/state"] = d["bonds/state"].astype(np.int8)
         if bd.has_turn:
             # the turn's central impulse on j over the last step (bond_frame = "end"); reset
@@ -1225,8 +1225,8 @@ class Simulation:
             # the grid cell, alert distance and projection slop follow the radii
             raise ValueError("state's particle radii differ from the simulation's (a state of "
                              "another sample): build the Simulation with the state's radii")
-        for key in ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext"):
-            put(getattr(p, key), d["particles/" + key])
+        put_rows([getattr(p, key) for key in self._PARTICLE_STATE],
+                 [d["particles/" + key] for key in self._PARTICLE_STATE])
         self._inverse_masses = None
         self._set_sample_index(d.get("particles/sample_index", self._identity_index()))
         self._neighbours_valid = False
