@@ -1183,10 +1183,9 @@ class Simulation:
             d["particles/system"] = get(p.system, n)
         if self.renumbered:
             d["particles/sample_index"] = self.sample_index.copy()
+        keys = ("i", "j", "impulse", "gap", "impulse_old")
+        d.update(zip(["contacts/" + k for k in keys], get_rows([getattr(ct, k) for k in keys], m)))
         d.update({
-            "contacts/i": get(ct.i, m), "contacts/j": get(ct.j, m),
-            "contacts/impulse": get(ct.impulse, m), "contacts/gap": get(ct.gap, m),
-            "contacts/impulse_old": get(ct.impulse_old, m),
             "contacts/start": get(ct.start, n + 1),
             "walls/kind": np.array([KINDS[w.kind] for w in self.walls], np.int32),
             "walls/point": np.array([w.position(self.time) for w in self.walls]).reshape(nw, 3),
@@ -1236,19 +1235,18 @@ class Simulation:
         ct = self.contacts
         if m == 0:      # (a file written before session 47 may hold a pooled buffer's old table)
             d = {**d, "contacts/start": np.zeros(self.n + 1, np.int32)}
-        put(ct.prev_j, d["contacts/j"])
-        put(ct.prev_impulse, d["contacts/impulse"])
         # each contact's impulse the step before (a state written before the extrapolated warm
-        # start lacks it: the last impulse then, which extrapolates nothing at the next step)
+        # start lacks it: the last impulse then, which extrapolates nothing at the next step);
+        # and the current contact list too, so that state_dict(load_state_dict(d)) == d even in
+        # a pooled container that held another simulation's contacts
         old = d.get("contacts/impulse_old", d["contacts/impulse"])
-        put(ct.prev_old, old)
+        put_rows((ct.prev_j, ct.prev_impulse, ct.prev_old, ct.i, ct.j, ct.impulse, ct.gap,
+                  ct.impulse_old),
+                 (d["contacts/j"], d["contacts/impulse"], old, d["contacts/i"], d["contacts/j"],
+                  d["contacts/impulse"], d["contacts/gap"], old))
         put(ct.prev_start, d["contacts/start"])
+        put(ct.start, d["contacts/start"])
         ct.prev_total[None] = m
-        # the current contact list too, so that state_dict(load_state_dict(d)) == d even in a
-        # pooled container that held another simulation's contacts
-        for key in ("i", "j", "impulse", "gap", "start"):
-            put(getattr(ct, key), d["contacts/" + key])
-        put(ct.impulse_old, old)
         ct.total[None] = m
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
         bonds["state"] = bonds["state"].astype(np.int32)
