@@ -956,16 +956,16 @@ class Simulation:
         self.grow_events.append(f"contacts {old.capacity} -> {capacity}")
         new = acquire(Contacts, capacity, self.particles.capacity)
         m = int(old.prev_total[None])
-        put(new.prev_j, get(old.prev_j, m))
-        put(new.prev_impulse, get(old.prev_impulse, m))
-        put(new.prev_old, get(old.prev_old, m))
+        put_rows((new.prev_j, new.prev_impulse, new.prev_old),
+                 get_rows((old.prev_j, old.prev_impulse, old.prev_old), m))
         new.prev_start.from_numpy(old.prev_start.to_numpy())
         new.prev_total[None] = m
         if keep_current:
             k = int(old.total[None])
-            for key in ("i", "j", "normal", "impulse", "impulse_old", "rhs", "wnn", "wtt", "mu",
-                        "colour", "gap"):
-                put(getattr(new, key), get(getattr(old, key), k))
+            keys = ("i", "j", "normal", "impulse", "impulse_old", "rhs", "wnn", "wtt", "mu",
+                    "colour", "gap")
+            put_rows([getattr(new, key) for key in keys],
+                     get_rows([getattr(old, key) for key in keys], k))
             new.count.from_numpy(old.count.to_numpy())
             new.start.from_numpy(old.start.to_numpy())
             new.total[None] = k
@@ -1427,10 +1427,9 @@ class Simulation:
     def contact_arrays(self) -> dict:
         ct = self.contacts
         m = int(ct.total[None])
-        return {"i": get(ct.i, m), "j": get(ct.j, m),
-                "impulse": get(ct.impulse, m).astype(float),
-                "normal": get(ct.normal, m).astype(float),
-                "gap": get(ct.gap, m).astype(float)}
+        i, j, impulse, normal, gap = get_rows((ct.i, ct.j, ct.impulse, ct.normal, ct.gap), m)
+        return {"i": i, "j": j, "impulse": impulse.astype(float),
+                "normal": normal.astype(float), "gap": gap.astype(float)}
 
     def set_angular_velocities(self, w) -> None:
         put(self.particles.w, per_particle("angular velocities", w, self.n))
