@@ -171,8 +171,9 @@ def get_rows(fields, n) -> list:
     """`[get(f, n) for f in fields]` in one kernel launch: fields of one 1-D shape (scalars or
     vectors of f64, f32 or 32-bit integers, all exact in the f64 copy). Taichi compiles its
     `to_numpy` once per field, about 0.1 s each on the CPU; this compiles once per tuple of
-    fields (a container's record), so a test suite or a study of many simulations compiles
-    a tenth of those copies."""
+    fields (a container's record) instead (tests/test_bonds.py with an empty kernel cache:
+    804 kernel instances before, 567 with the particles' and bonds' copies grouped). The copy
+    is an f64 array of n rows and one column per scalar component."""
     fields = tuple(fields)
     _same_rows(fields)
     width = _column_offsets(fields)[-1]
