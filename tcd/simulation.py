@@ -22,7 +22,7 @@ import numpy as np
 
 from . import backend, contacts as ck, partitioned as pk, solver as sk, state as state_mod
 from .state import (MAX_PARTS, MAX_SWEEPS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
-                    Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, get_rows, put, put_rows,
+                    Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, get_fields, put, put_fields,
                     release)
 from .walls import KINDS, Wall
 
@@ -34,9 +34,10 @@ BOND_FRAMES = ("start", "end")
 CONVERGENCE_MEASURES = ("impulse", "quad")
 COLOURINGS = ("auto", "greedy", "rounds")
 INT32_MAX = 2**31 - 1
+# the particles' arrays of a state (Simulation.state_dict; "particles/system" besides in a batch)
+PARTICLE_STATE = ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")
 # what load_state_dict needs of a state (state_dict writes these and more)
-STATE_KEYS = tuple("particles/" + k for k in ("x", "v", "w", "radius", "layer", "inv_mass",
-                                               "inv_inertia", "f_ext")) + tuple(
+STATE_KEYS = tuple("particles/" + k for k in PARTICLE_STATE) + tuple(
     "contacts/" + k for k in ("i", "j", "impulse", "gap", "start")) + ("bonds/state",)
 
 
@@ -481,11 +482,11 @@ class Simulation:
             fixed = np.asarray(fixed, dtype=bool)
             inv_mass[fixed] = 0.0
             inv_inertia[fixed] = 0.0
-        put_rows((p.radius, p.inv_mass, p.inv_inertia, p.x, p.v, p.w, p.f_ext, p.layer, p.system),
-                 (radius, inv_mass, inv_inertia, position, velocity, np.zeros((n, 3)),
-                  np.zeros((n, 3)),
-                  np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32),
-                  system.astype(np.int32)))
+        layer = np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32)
+        put_fields(p, {"radius": radius, "inv_mass": inv_mass, "inv_inertia": inv_inertia,
+                       "x": position, "v": velocity, "w": np.zeros((n, 3)),
+                       "f_ext": np.zeros((n, 3)), "layer": layer,
+                       "system": system.astype(np.int32)})
         self._inverse_masses = None         # inverse_masses(): read when first asked
         self.system_start = np.searchsorted(system, np.arange(self.systems + 1)).astype(np.int32)
         put(p.sys_start, self.system_start)
@@ -956,16 +957,13 @@ class Simulation:
         self.grow_events.append(f"contacts {old.capacity} -> {capacity}")
         new = acquire(Contacts, capacity, self.particles.capacity)
         m = int(old.prev_total[None])
-        put_rows((new.prev_j, new.prev_impulse, new.prev_old),
-                 get_rows((old.prev_j, old.prev_impulse, old.prev_old), m))
+        put_fields(new, get_fields(old, ("prev_j", "prev_impulse", "prev_old"), m))
         new.prev_start.from_numpy(old.prev_start.to_numpy())
         new.prev_total[None] = m
         if keep_current:
             k = int(old.total[None])
-            keys = ("i", "j", "normal", "impulse", "impulse_old", "rhs", "wnn", "wtt", "mu",
-                    "colour", "gap")
-            put_rows([getattr(new, key) for key in keys],
-                     get_rows([getattr(old, key) for key in keys], k))
+            put_fields(new, get_fields(old, ("i", "j", "normal", "impulse", "impulse_old", "rhs",
+                                             "wnn", "wtt", "mu", "colour", "gap"), k))
             new.count.from_numpy(old.count.to_numpy())
             new.start.from_numpy(old.start.to_numpy())
             new.total[None] = k
@@ -1027,7 +1025,6 @@ class Simulation:
                       "hd_n": 0.0, "hk_n": 0.0, "impulse": 0.0, "d_t": 0.0, "hd_t": 0.0,
                       "hk_t": 0.0, "broken_time": np.nan, "broken_pos": np.nan, "impulse_prev": 0.0}
     _BOND_VECTORS = ("impulse", "d_t", "hd_t", "hk_t", "broken_pos", "impulse_prev")
-    _PARTICLE_STATE = ("x", "v", "w", "radius", "layer", "inv_mass", "inv_inertia", "f_ext")
 
     def _bond_buffer(self, b: int) -> Bonds:
         """A bond buffer for `b` bonds from the pool. Without bonds, the smallest buffer: 64
@@ -1046,12 +1043,12 @@ class Simulation:
         release(self.bonds)
         bd = self._bond_buffer(b)
         order = np.lexsort((a["j"], a["i"])) if b else np.zeros(0, int)
-        values = []
+        values = {}
         for key, default in self._BOND_DEFAULTS.items():
             shape = (b, 3) if key in self._BOND_VECTORS else (b,)
             arr = np.asarray(a[key]) if key in a else np.full(shape, default)
-            values.append(arr[order].reshape(shape))
-        put_rows([getattr(bd, key) for key in self._BOND_DEFAULTS], values)
+            values[key] = arr[order].reshape(shape)
+        put_fields(bd, values)
         start = np.zeros(self.n + 1, np.int32)
         np.add.at(start, np.asarray(a["i"], int)[order] + 1, 1)
         put(bd.start, np.cumsum(start))
@@ -1177,14 +1174,13 @@ class Simulation:
         impulse is bonds/impulse (its own, the next step's warm start) plus bonds/turn."""
         p, ct, bd, wf = self.particles, self.contacts, self.bonds, self.wall_fields
         n, m, b, nw = self.n, int(ct.total[None]), int(bd.total[None]), len(self.walls)
-        d = dict(zip(["particles/" + k for k in self._PARTICLE_STATE],
-                     get_rows([getattr(p, k) for k in self._PARTICLE_STATE], n)))
+        d = {"particles/" + k: v for k, v in get_fields(p, PARTICLE_STATE, n).items()}
         if self.systems > 1:
             d["particles/system"] = get(p.system, n)
         if self.renumbered:
             d["particles/sample_index"] = self.sample_index.copy()
-        keys = ("i", "j", "impulse", "gap", "impulse_old")
-        d.update(zip(["contacts/" + k for k in keys], get_rows([getattr(ct, k) for k in keys], m)))
+        d.update({"contacts/" + k: v for k, v in
+                  get_fields(ct, ("i", "j", "impulse", "gap", "impulse_old"), m).items()})
         d.update({
             "contacts/start": get(ct.start, n + 1),
             "walls/kind": np.array([KINDS[w.kind] for w in self.walls], np.int32),
@@ -1194,8 +1190,7 @@ class Simulation:
             "walls/extent": np.array([w.extent for w in self.walls], float).reshape(nw, 2),
             "walls/force": get(wf.force, nw),
         })
-        d.update(zip(["bonds/" + key for key in self._BOND_DEFAULTS],
-                     get_rows([getattr(bd, key) for key in self._BOND_DEFAULTS], b)))
+        d.update({"bonds/" + k: v for k, v in get_fields(bd, self._BOND_DEFAULTS, b).items()})
         d["bonds/state"] = d["bonds/state"].astype(np.int8)
         if bd.has_turn:
             # the turn's central impulse on j over the last step (bond_frame = "end"); reset
@@ -1224,8 +1219,7 @@ class Simulation:
             # the grid cell, alert distance and projection slop follow the radii
             raise ValueError("state's particle radii differ from the simulation's (a state of "
                              "another sample): build the Simulation with the state's radii")
-        put_rows([getattr(p, key) for key in self._PARTICLE_STATE],
-                 [d["particles/" + key] for key in self._PARTICLE_STATE])
+        put_fields(p, {key: d["particles/" + key] for key in PARTICLE_STATE})
         self._inverse_masses = None
         self._set_sample_index(d.get("particles/sample_index", self._identity_index()))
         self._neighbours_valid = False
@@ -1240,12 +1234,11 @@ class Simulation:
         # and the current contact list too, so that state_dict(load_state_dict(d)) == d even in
         # a pooled container that held another simulation's contacts
         old = d.get("contacts/impulse_old", d["contacts/impulse"])
-        put_rows((ct.prev_j, ct.prev_impulse, ct.prev_old, ct.i, ct.j, ct.impulse, ct.gap,
-                  ct.impulse_old),
-                 (d["contacts/j"], d["contacts/impulse"], old, d["contacts/i"], d["contacts/j"],
-                  d["contacts/impulse"], d["contacts/gap"], old))
-        put(ct.prev_start, d["contacts/start"])
-        put(ct.start, d["contacts/start"])
+        put_fields(ct, {"prev_j": d["contacts/j"], "prev_impulse": d["contacts/impulse"],
+                        "prev_old": old, "i": d["contacts/i"], "j": d["contacts/j"],
+                        "impulse": d["contacts/impulse"], "gap": d["contacts/gap"],
+                        "impulse_old": old})
+        put_fields(ct, {"prev_start": d["contacts/start"], "start": d["contacts/start"]})
         ct.prev_total[None] = m
         ct.total[None] = m
         bonds = {k.split("/", 1)[1]: np.asarray(v) for k, v in d.items() if k.startswith("bonds/")}
@@ -1427,9 +1420,9 @@ class Simulation:
     def contact_arrays(self) -> dict:
         ct = self.contacts
         m = int(ct.total[None])
-        i, j, impulse, normal, gap = get_rows((ct.i, ct.j, ct.impulse, ct.normal, ct.gap), m)
-        return {"i": i, "j": j, "impulse": impulse.astype(float),
-                "normal": normal.astype(float), "gap": gap.astype(float)}
+        c = get_fields(ct, ("i", "j", "impulse", "normal", "gap"), m)
+        return {"i": c["i"], "j": c["j"], "impulse": c["impulse"].astype(float),
+                "normal": c["normal"].astype(float), "gap": c["gap"].astype(float)}
 
     def set_angular_velocities(self, w) -> None:
         put(self.particles.w, per_particle("angular velocities", w, self.n))

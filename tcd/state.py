@@ -176,11 +176,10 @@ def get_rows(fields, n) -> list:
     is an f64 array of n rows and one column per scalar component."""
     fields = tuple(fields)
     _same_rows(fields)
-    width = _column_offsets(fields)[-1]
-    out = np.zeros((max(n, 1), width), np.float64)
+    offsets = _column_offsets(fields)
+    out = np.zeros((max(n, 1), offsets[-1]), np.float64)
     if n > 0:
         _rows_out(fields, out, n)
-    offsets = _column_offsets(fields)
     arrays = []
     for f, off in zip(fields, offsets):
         if isinstance(f, ti.MatrixField):
@@ -208,6 +207,16 @@ def put_rows(fields, values) -> None:
         width = f.n if isinstance(f, ti.MatrixField) else 1
         arr[:m, off:off + width] = v.reshape(m, width)
     _rows_in(fields, arr, m, rows)
+
+
+def get_fields(container, keys, n) -> dict:
+    """{key: get(getattr(container, key), n)} for each of `keys`, through get_rows."""
+    return dict(zip(keys, get_rows([getattr(container, key) for key in keys], n)))
+
+
+def put_fields(container, values: dict) -> None:
+    """put(getattr(container, key), value) for each item of `values`, through put_rows."""
+    put_rows([getattr(container, key) for key in values], list(values.values()))
 
 
 def _np_dtype(field):

@@ -6,18 +6,19 @@ import pytest
 import taichi as ti
 
 from tcd import state
+from tcd.backend import numpy_real, real as real_dtype
 
 
 @pytest.fixture
 def fields(backend):
     """A record like the solver's: AoS scalars and a vector, a plain vector field, an int."""
-    real = state.backend.real()
+    real = real_dtype()
     f = state._struct(8, ti.field(ti.i32), state._real_row(), state._vec_row())
     return f + (state._vec(8), ti.field(real, shape=8), ti.field(ti.i32, shape=8))
 
 
 def values(rng, m):
-    real = state.backend.numpy_real()
+    real = numpy_real()
     x = rng.normal(size=(m, 3))
     x[1, 2] = np.nan                              # a bond's broken_position while intact
     return [rng.integers(-2**31, 2**31, m).astype(np.int32), rng.normal(size=m), x,
