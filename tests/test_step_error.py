@@ -1,0 +1,78 @@
+"""benchmarks/step_error.py: the distance from a step stopped at the tolerance to the same step
+solved to convergence, on a bonded pile sheared by a rough plate."""
+import numpy as np
+import pytest
+
+from tcd import walls
+from tcd.simulation import Simulation, SolverSettings
+
+
+def sheared_pile():
+    """A 4 x 4 x 3 lattice of touching spheres on a floor, bonded, under a rough top plate that
+    moves along x."""
+    r = 0.004
+    g = np.arange(4) * 2 * r
+    x = np.array([[a, b, r + c] for a in g for b in g for c in g[:3]])
+    top = x[:, 2].max() + r
+    plate = walls.plane((0, 0, top), (0, 0, -1), friction=0.7, motion="constant",
+                        velocity=(0.05, 0.0, -0.002), name="top plate")
+    sim = Simulation(np.full(len(x), r), x, walls=[walls.plane((0, 0, 0), (0, 0, 1)), plate],
+                     settings=SolverSettings(time_step=2e-4, tolerance=1e-4, max_sweeps=2000),
+                     domain=((-0.01,) * 3, (0.04, 0.04, 0.04)))
+    assert sim.create_bonds(1e-6) > 50
+    sim.step(5)
+    return sim
+
+
+def test_a_loose_tolerance_leaves_the_step_off_its_solution(benchmark_script):
+    step_error = benchmark_script("step_error").step_error
+    sim = sheared_pile()
+    state, t, k = sim.state_dict(), sim.time, sim.step_index
+    rows = {}
+    for tol in (1e-2, 1e-6, 1e-12):
+        sim.load_state_dict(state)
+        sim.time, sim.step_index = t, k
+        rows[tol] = step_error(sim, 2e-4, tol, settle_steps=3, reference_tolerance=1e-12,
+                               reference_sweeps=20000, max_sweeps=20000)
+    loose, tight, same = rows[1e-2], rows[1e-6], rows[1e-12]
+    # the reference converged, and the plate carries a force along x
+    assert loose["reference_residual"] <= 1e-12 and loose["reference_sweeps"] < 20000
+    assert abs(loose["wall_force_N"]) > 0
+    # stopped at 1e-2 the step is off; at 1e-6 much closer; at the reference's own tolerance
+    # the two solves are the same solve, bit for bit (the state and clock were restored)
+    assert loose["sweeps"] < loose["reference_sweeps"]
+    assert loose["impulse_error"] > 10 * tight["impulse_error"] > 0
+    assert loose["bond_impulse_error"] > tight["bond_impulse_error"]
+    for key in ("impulse_error", "bond_impulse_error", "velocity_error", "wall_force_error"):
+        assert same[key] == 0.0, key
+    assert same["sweeps"] == same["reference_sweeps"]
+    sim.close()
+
+
+def test_main_reads_a_checkpoint_and_its_scenario(benchmark_script, tmp_path, capsys, backend):
+    """The command line: a run's checkpoint and scenario, one JSON row per time step."""
+    if backend != ("cpu", "f64"):
+        pytest.skip("the script runs in f64")
+    from tcd import io, runner
+    from tcd.config import parse_scenario
+    script = benchmark_script("step_error")
+    text = ('name = "pile"\nseeds = [1]\n[solver]\ntime_step = 2e-4\ntolerance = 1e-4\n'
+            '[[stage]]\nkind = "shear"\nsample = "unused.h5"\n')
+    scn_path = tmp_path / "pile.toml"
+    scn_path.write_text(text)
+    scn = parse_scenario(text, str(scn_path), resolve_samples=False)
+    sim = sheared_pile()
+    meta = {"walls": [w.to_dict() for w in sim.walls], "time": sim.time, "step": sim.step_index,
+            "bond_law": sim.bond_law.__dict__,
+            "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]}
+    io.save_checkpoint(tmp_path / "checkpoint.h5", sim.state_dict(), meta)
+    again = runner.restore_simulation(scn, *io.load_checkpoint(tmp_path / "checkpoint.h5"))
+    assert np.array_equal(again.positions(), sim.positions())
+    again.close()
+    sim.close()
+    rows = script.main([str(tmp_path / "checkpoint.h5"), str(scn_path), "--time-steps",
+                        "2e-4,1e-4", "--tolerance", "1e-2", "--settle-steps", "2",
+                        "--reference-sweeps", "20000", "--json"])
+    assert [row["time_step"] for row in rows] == [2e-4, 1e-4]
+    assert all(row["impulse_error"] > 0 for row in rows)
+    assert capsys.readouterr().out.count('"impulse_error"') == 2
