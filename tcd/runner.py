@@ -627,9 +627,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                 arrays.update({f"series/{seed}/{k}": np.asarray(v) for k, v in ser.items()})
             meta = {"seeds": seeds, "phases": [ph.to_json() for ph in phases],
                     "step_in_phase": step_in_phase, "next_snapshot": next_snapshot,
-                    "results": results, "time": batch.time, "step": batch.step_index,
-                    "walls": [w.to_dict() for w in batch.walls], "bond_law": batch.bond_law.__dict__,
-                    "domain": [list(map(float, batch.domain[0])), list(map(float, batch.domain[1]))],
+                    "results": results, **simulation_meta(batch),
                     "wall_time_s": time.perf_counter() - t_loop, "tcd_version": __version__,
                     "scenario_text": scenario.text,
                     "series_keys": {str(seed): list(ser) for seed, ser in zip(seeds, series)},
@@ -869,10 +867,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         arrays = dict(sim.state_dict())
         arrays.update({"series/" + k: np.asarray(v) for k, v in series.items()})
         meta = {"stage": stage_idx, "phase_index": phase_idx, "step_in_phase": step_in_phase,
-                "phase": phase.to_json() if phase else None, "time": sim.time, "step": sim.step_index,
-                "result": result, "next_snapshot": next_snapshot, "walls": [w.to_dict() for w in sim.walls],
-                "bond_law": sim.bond_law.__dict__, "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))],
-                "tcd_version": __version__, "seed": seed, "scenario_text": scn.text,
+                "phase": phase.to_json() if phase else None, **simulation_meta(sim),
+                "result": result, "next_snapshot": next_snapshot, "tcd_version": __version__, "seed": seed, "scenario_text": scn.text,
                 # the series' column order (the checkpoint's datasets come back by name)
                 "series_keys": list(series),
                 # a resume cuts states.h5 back to these frames (a hard kill may have left more)
@@ -1149,6 +1145,15 @@ def restore_frames(states: pathlib.Path, frames, ck_path, seed: int) -> None:
     if dropped:
         print(f"tcd: note: seed {seed}: {states}: {dropped} frame(s) written after the last "
               "checkpoint were dropped (the resumed run writes them again)", file=sys.stderr)
+
+
+def simulation_meta(sim) -> dict:
+    """What `restore_simulation` reads of a file's meta besides its arrays: `sim`'s clock, step
+    count, walls, bond law and broad-phase box (a run's checkpoints, one sample's or a batch's,
+    hold it)."""
+    return {"time": sim.time, "step": sim.step_index, "walls": [w.to_dict() for w in sim.walls],
+            "bond_law": sim.bond_law.__dict__,
+            "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]}
 
 
 def restore_simulation(scn, arrays: dict, meta: dict):

@@ -62,10 +62,7 @@ def test_main_reads_a_checkpoint_and_its_scenario(benchmark_script, tmp_path, ca
     scn_path.write_text(text)
     scn = parse_scenario(text, str(scn_path), resolve_samples=False)
     sim = sheared_pile()
-    meta = {"walls": [w.to_dict() for w in sim.walls], "time": sim.time, "step": sim.step_index,
-            "bond_law": sim.bond_law.__dict__,
-            "domain": [list(map(float, sim.domain[0])), list(map(float, sim.domain[1]))]}
-    io.save_checkpoint(tmp_path / "checkpoint.h5", sim.state_dict(), meta)
+    io.save_checkpoint(tmp_path / "checkpoint.h5", sim.state_dict(), runner.simulation_meta(sim))
     again = runner.restore_simulation(scn, *io.load_checkpoint(tmp_path / "checkpoint.h5"))
     assert np.array_equal(again.positions(), sim.positions())
     again.close()
