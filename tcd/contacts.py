@@ -319,9 +319,10 @@ def neighbour_list_stale(p: ti.template(), nb: ti.template(), h: float, accel: f
     return nb.stale[None]
 
 
-@ti.kernel
-def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
-                 ct: ti.template(), alert: float, h: float, accel: float, fill: ti.template()):
+@ti.func
+def _contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
+                  ct: ti.template(), alert: ti.template(), h: ti.template(), accel: ti.template(),
+                  fill: ti.template()):
     """Each particle's contact candidates from its neighbour list: partners j whose gap is
     below the alert distance plus both reaches (may touch by the end of the step) and not
     held by an intact bond, then the walls within reach. Counts them (`fill` False, into
@@ -354,6 +355,12 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
             ct.count[i] = m
 
 
+@ti.kernel
+def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
+                 ct: ti.template(), alert: float, h: float, accel: float, fill: ti.template()):
+    _contact_pass(p, wl, nb, bd, ct, alert, h, accel, fill)
+
+
 def contact_count(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:
     contact_pass(p, wl, nb, bd, ct, alert, h, accel, False)
 
@@ -362,9 +369,10 @@ def contact_fill(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> Non
     contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
 
 
-@ti.kernel
-def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
-                     h: float, theta: float, mu: float, mu_break: float, extrap: float):
+@ti.func
+def _contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
+                      h: ti.template(), theta: ti.template(), mu: ti.template(),
+                      mu_break: ti.template(), extrap: ti.template()):
     """Frame, gap at the predicted configuration, Delassus diagonal, friction (`mu` between
     particles, `mu_break` between two whose bond broke, each wall's own), warm start:
     the contact's impulse of the last step R_n, or with `extrap` = c > 0, where the contact also
@@ -424,7 +432,13 @@ def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct:
 
 
 @ti.kernel
-def save_history(ct: ti.template(), n: ti.i32):
+def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
+                     h: float, theta: float, mu: float, mu_break: float, extrap: float):
+    _contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
+
+
+@ti.func
+def _save_history(ct: ti.template(), n: ti.template()):
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for k in range(ct.total[None]):
         ct.prev_j[k] = ct.j[k]
@@ -434,3 +448,8 @@ def save_history(ct: ti.template(), n: ti.i32):
     for i in range(n + 1):
         ct.prev_start[i] = ct.start[i]
     ct.prev_total[None] = ct.total[None]
+
+
+@ti.kernel
+def save_history(ct: ti.template(), n: ti.i32):
+    _save_history(ct, n)

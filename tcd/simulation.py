@@ -709,37 +709,37 @@ class Simulation:
         return (mode, law.maxwell_stiffness, law.maxwell_viscosity, law.kelvin_stiffness,
                 law.kelvin_viscosity, law.tangent_factor)
 
-    def _begin_step(self) -> None:
+    def _begin_step(self, warm_start: bool = False) -> None:
         """The step up to its warm start: walls moved to the step's start, contacts built, the
         predictor, the bonds' and the contacts' terms of the step (benchmarks/ start from here to
-        solve one step in their own ways)."""
+        solve one step in their own ways), and with `warm_start` the warm start applied (the
+        schedules that do not colour their items). One launch after the contacts' count
+        (solver.step_begin)."""
         s = self.settings
-        h, theta = s.time_step, s.theta
-        p, wl, bd = self.particles, self.wall_fields, self.bonds
+        p, bd = self.particles, self.bonds
         self._move_walls(self.time)
-        self._build_contacts()
-        sk.predict(p, h, *s.gravity)
-        extrap = s.warm_start_extrapolation
-        if bd.total[None] > 0:
-            sk.bonds_prepare(p, bd, h, theta, self.time + h, *self._bond_law_args(), extrap)
-            if s.bond_blocks:
-                sk.bonds_factor(p, bd)
-        ck.contact_geometry(p, wl, bd, self.contacts, h, theta, self.friction,
-                            self.bond_law.friction_after_break, extrap)
+        self._build_contacts(fill=False)
+        self._has_bonds = bd.total[None] > 0
+        sk.step_begin(p, self.wall_fields, self.neighbours, bd, self.contacts, self.alert,
+                      s.time_step, self._reach_accel(), *s.gravity, s.theta,
+                      self.time + s.time_step, *self._bond_law_args(),
+                      s.warm_start_extrapolation, self.friction,
+                      self.bond_law.friction_after_break, int(self._has_bonds),
+                      int(self._has_bonds and s.bond_blocks), int(warm_start))
 
     def _step(self) -> None:
         s = self.settings
         h, theta = s.time_step, s.theta
         t_end = self.time + h
         p, wl, bd = self.particles, self.wall_fields, self.bonds
-        self._begin_step()
+        coloured = self.schedule in COLOURED
+        self._begin_step(warm_start=not coloured)
         ct = self.contacts
-        if self.schedule in COLOURED:
+        if coloured:
             ncol, items = self._colour()
             self._by_colours(ncol, sk.warm_start_colours, p, ct, bd, self.colours)
         else:
             ncol, items = 0, 0
-            sk.apply_warm_start(p, ct, bd)
         if self.schedule == "serial":
             sk.nlgs_serial(p, wl, ct, bd, self.stats, s.max_sweeps, s.tolerance, s.check_every,
                            *self._sweep_flags())
@@ -754,19 +754,14 @@ class Simulation:
             colours = ncol
         else:
             colours = self._solve_coloured(ncol, items)
-        if bd.total[None] > 0:
-            sk.bonds_finish(p, wl, bd, h, theta, t_end, *self._bond_law_args(),
-                            self.bond_law.yield_stress)
-        sk.integrate(p, h, theta)
         slop = s.overlap_slop * 2.0 * self.r_min
-        if s.projection_passes > 0 and self.schedule in COLOURED:
+        sk.step_end(p, wl, ct, bd, h, theta, t_end, *self._bond_law_args(),
+                    self.bond_law.yield_stress, slop, s.projection_passes, self.n,
+                    int(self._has_bonds), int(s.projection_passes > 0 and not coloured))
+        if s.projection_passes > 0 and coloured:
             for _ in range(s.projection_passes):
                 self._by_colours(colours, sk.project_overlaps_colours, p, wl, ct, bd,
                                  self.colours, h, slop)
-        elif s.projection_passes > 0:
-            sk.project_overlaps(p, wl, ct, h, slop, s.projection_passes)
-        sk.wall_forces(p, wl, ct, h)
-        ck.save_history(ct, self.n)
         if self._refit_contacts:
             self._refit_contacts = False
             need = capacity_class(int(1.5 * int(ct.total[None])) + 64)
@@ -899,7 +894,10 @@ class Simulation:
         """The gravity's magnitude, for each grain's reach over a step (contacts.reach)."""
         return float(np.linalg.norm(self.settings.gravity))
 
-    def _build_contacts(self) -> None:
+    def _build_contacts(self, fill: bool = True) -> None:
+        """The step's contact list from the neighbour list (a new one when it is stale):
+        counted, scanned, the buffer grown if it overflows, then filled (`fill`; _begin_step
+        fills it in solver.step_begin)."""
         p, wl, bd = self.particles, self.wall_fields, self.bonds
         h, a = self.settings.time_step, self._reach_accel()
         if not self._neighbours_valid or ck.neighbour_list_stale(p, self.neighbours, h, a):
@@ -912,7 +910,8 @@ class Simulation:
                 break
             self._resize_contacts(int(total * 1.5) + 16)
         ct.total[None] = total
-        ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h, a)
+        if fill:
+            ck.contact_fill(p, wl, self.neighbours, bd, ct, self.alert, h, a)
 
     def _build_neighbours(self) -> None:
         """A new neighbour list (contacts.neighbour_pass): the grid walked with each particle's
