@@ -662,14 +662,17 @@ class Simulation:
     def _upload_walls(self, t: float) -> None:
         """All wall data (on set_walls); per step only `_move_walls` runs."""
         wf, walls = self.wall_fields, self.walls
-        put(wf.kind, np.array([KINDS[w.kind] for w in walls], np.int32))
-        put(wf.direction, np.array([w.direction for w in walls], float).reshape(-1, 3))
-        put(wf.radius, np.array([w.radius for w in walls], float))
-        put(wf.lo, np.array([w.extent[0] for w in walls], float))
-        put(wf.hi, np.array([w.extent[1] for w in walls], float))
-        put(wf.friction, np.array([w.friction for w in walls], float))
-        put(wf.system, np.array([w.system for w in walls], np.int32))
-        put(wf.rim, np.array([int(w.edges == "rim") for w in walls], np.int32))
+        # one row copy (state.put_rows) for the eight fields: one kernel instance per wall
+        # container instead of one per field
+        put_fields(wf, {
+            "kind": np.array([KINDS[w.kind] for w in walls], np.int32),
+            "direction": np.array([w.direction for w in walls], float).reshape(-1, 3),
+            "radius": np.array([w.radius for w in walls], float),
+            "lo": np.array([w.extent[0] for w in walls], float),
+            "hi": np.array([w.extent[1] for w in walls], float),
+            "friction": np.array([w.friction for w in walls], float),
+            "system": np.array([w.system for w in walls], np.int32),
+            "rim": np.array([int(w.edges == "rim") for w in walls], np.int32)})
         wf.count[None] = len(walls)
         self._moving = any(w.motion != "fixed" for w in walls)
         self._move_walls(t, force=True)
@@ -678,9 +681,9 @@ class Simulation:
         if not (force or self._moving):
             return
         h = self.settings.time_step
-        put(self.wall_fields.point, np.array([w.position(t) for w in self.walls], float).reshape(-1, 3))
-        put(self.wall_fields.velocity,
-            np.array([w.step_velocity(t, h) for w in self.walls], float).reshape(-1, 3))
+        put_fields(self.wall_fields, {
+            "point": np.array([w.position(t) for w in self.walls], float).reshape(-1, 3),
+            "velocity": np.array([w.step_velocity(t, h) for w in self.walls], float).reshape(-1, 3)})
 
     def _drop_wall_history(self):
         """Wall contacts start the next step from zero impulse: in the history the warm start
@@ -886,8 +889,8 @@ class Simulation:
         self.stats.sweeps[None] = sweeps
         self.stats.residual[None] = residual
         # one convergence test over all systems: each system reports the common figures
-        put(self.stats.sys_sweeps, np.full(self.systems, sweeps, np.int32))
-        put(self.stats.sys_residual, np.full(self.systems, residual))
+        put_fields(self.stats, {"sys_sweeps": np.full(self.systems, sweeps, np.int32),
+                                "sys_residual": np.full(self.systems, residual)})
         return ncol
 
     def _reach_accel(self) -> float:
