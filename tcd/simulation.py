@@ -512,6 +512,7 @@ class Simulation:
         self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
         self.grow_events: list[str] = []
         self._refit_contacts = False
+        self._has_bonds = False          # whether this step holds bonds (_begin_step)
 
     # ---------------------------------------------------------------- construction helpers
     def _grid_dims(self) -> np.ndarray:
