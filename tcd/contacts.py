@@ -370,9 +370,9 @@ def contact_fill(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> Non
 
 
 @ti.func
-def _contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
-                      h: ti.template(), theta: ti.template(), mu: ti.template(),
-                      mu_break: ti.template(), extrap: ti.template()):
+def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
+                     h: ti.template(), theta: ti.template(), mu: ti.template(),
+                     mu_break: ti.template(), extrap: ti.template()):
     """Frame, gap at the predicted configuration, Delassus diagonal, friction (`mu` between
     particles, `mu_break` between two whose bond broke, each wall's own), warm start:
     the contact's impulse of the last step R_n, or with `extrap` = c > 0, where the contact also
@@ -431,14 +431,8 @@ def _contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct
         ct.impulse[k] = r
 
 
-@ti.kernel
-def contact_geometry(p: ti.template(), wl: ti.template(), bd: ti.template(), ct: ti.template(),
-                     h: float, theta: float, mu: float, mu_break: float, extrap: float):
-    _contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
-
-
 @ti.func
-def _save_history(ct: ti.template(), n: ti.template()):
+def save_history(ct: ti.template(), n: ti.template()):
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for k in range(ct.total[None]):
         ct.prev_j[k] = ct.j[k]
@@ -448,8 +442,3 @@ def _save_history(ct: ti.template(), n: ti.template()):
     for i in range(n + 1):
         ct.prev_start[i] = ct.start[i]
     ct.prev_total[None] = ct.total[None]
-
-
-@ti.kernel
-def save_history(ct: ti.template(), n: ti.i32):
-    _save_history(ct, n)

@@ -529,7 +529,7 @@ def held_unknown(p: ti.template(), q, r: ti.template()):
 
 
 @ti.func
-def _bonds_factor(p: ti.template(), bd: ti.template()):
+def bonds_factor(p: ti.template(), bd: ti.template()):
     """Per step, after bonds_prepare: (alpha, beta) of each intact bond's ends (Bonds.stiff)
     and the inverse block matrix M' + sum G_b^T K_b G_b of each particle with intact bonds
     (Bonds.inverse; held unknowns get identity rows and columns)."""
@@ -600,11 +600,6 @@ def _bonds_factor(p: ti.template(), bd: ti.template()):
             for e in ti.static(range(21)):
                 f[e] = inv[TRI6[e][0], TRI6[e][1]]
             bd.inverse[q] = f
-
-
-@ti.kernel
-def bonds_factor(p: ti.template(), bd: ti.template()):
-    _bonds_factor(p, bd)
 
 
 @ti.func
@@ -829,8 +824,8 @@ def contact_momentum(p: ti.template(), ct: ti.template(), k, beta, bodies: ti.te
 
 # --- step kernels ------------------------------------------------------------------------------
 @ti.func
-def _predict(p: ti.template(), h: ti.template(), gx: ti.template(), gy: ti.template(),
-             gz: ti.template()):
+def predict(p: ti.template(), h: ti.template(), gx: ti.template(), gy: ti.template(),
+            gz: ti.template()):
     """Keep the beginning-of-step velocities; add the impulse of external forces.
     (g is built inside the loop: a vector of f64 set before the parallel loop is handed to it
     through Taichi's global temporaries, misaligned on CUDA: CUDA_ERROR_MISALIGNED_ADDRESS.)"""
@@ -841,11 +836,6 @@ def _predict(p: ti.template(), h: ti.template(), gx: ti.template(), gy: ti.templ
         p.w_old[i] = p.w[i]
         if p.inv_mass[i] > 0.0:
             p.v[i] += h * (g + p.f_ext[i] * p.inv_mass[i])
-
-
-@ti.kernel
-def predict(p: ti.template(), h: float, gx: float, gy: float, gz: float):
-    _predict(p, h, gx, gy, gz)
 
 
 @ti.func
@@ -1811,10 +1801,10 @@ def warm_start_item(p: ti.template(), ct: ti.template(), bd: ti.template(), cs: 
 
 # --- bonds: per-step frame and compliance, and post-solve update with yield -------------------
 @ti.func
-def _bonds_prepare(p: ti.template(), bd: ti.template(), h: ti.template(), theta: ti.template(),
-                   t_end: ti.template(), mode: ti.template(), k_m: ti.template(),
-                   eta_m: ti.template(), k_k: ti.template(), eta_k: ti.template(),
-                   tangent_factor: ti.template(), extrap: ti.template()):
+def bonds_prepare(p: ti.template(), bd: ti.template(), h: ti.template(), theta: ti.template(),
+                  t_end: ti.template(), mode: ti.template(), k_m: ti.template(),
+                  eta_m: ti.template(), k_k: ti.template(), eta_k: ti.template(),
+                  tangent_factor: ti.template(), extrap: ti.template()):
     """Current frame and lever arms (the middle of the gap, bond_arms); tangential
     displacement and history carried into the new tangent plane (projected, length kept) and
     turned with the pair's spin about the bond's axis over the last step; extra compliance
@@ -1874,13 +1864,6 @@ def _bonds_prepare(p: ti.template(), bd: ti.template(), h: ti.template(), theta:
             bd.rhs_t[b] = (dt_beg - off_t) / (theta * h)
 
 
-@ti.kernel
-def bonds_prepare(p: ti.template(), bd: ti.template(), h: float, theta: float, t_end: float,
-                  mode: ti.i32, k_m: float, eta_m: float, k_k: float, eta_k: float,
-                  tangent_factor: float, extrap: float):
-    _bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor, extrap)
-
-
 @ti.func
 def turn_about(vec, n, angle):
     """vec (perpendicular to the unit n) turned by `angle` (rad) about n."""
@@ -1899,10 +1882,10 @@ def rotate_into_plane(vec, n):
 
 
 @ti.func
-def _bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: ti.template(),
-                  theta: ti.template(), t_end: ti.template(), mode: ti.template(),
-                  k_m: ti.template(), eta_m: ti.template(), k_k: ti.template(),
-                  eta_k: ti.template(), tangent_factor: ti.template(), yield_stress: ti.template()):
+def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: ti.template(),
+                 theta: ti.template(), t_end: ti.template(), mode: ti.template(),
+                 k_m: ti.template(), eta_m: ti.template(), k_k: ti.template(),
+                 eta_k: ti.template(), tangent_factor: ti.template(), yield_stress: ti.template()):
     """Tangential displacement at the end of the step, Burgers history, brittle yield."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for b in range(bd.total[None]):
@@ -1933,30 +1916,17 @@ def _bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: ti.
                 bd.broken_pos[b] = p.x[i] + (ri + 0.5 * gap) * n
 
 
-@ti.kernel
-def bonds_finish(p: ti.template(), wl: ti.template(), bd: ti.template(), h: float, theta: float,
-                 t_end: float, mode: ti.i32, k_m: float, eta_m: float, k_k: float,
-                 eta_k: float, tangent_factor: float, yield_stress: float):
-    _bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                  yield_stress)
-
-
 # --- integration and wall forces ---------------------------------------------------------------
 @ti.func
-def _integrate(p: ti.template(), h: ti.template(), theta: ti.template()):
+def integrate(p: ti.template(), h: ti.template(), theta: ti.template()):
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for i in range(p.count[None]):
         p.x[i] += h * (theta * p.v[i] + (1.0 - theta) * p.v_old[i])
 
 
-@ti.kernel
-def integrate(p: ti.template(), h: float, theta: float):
-    _integrate(p, h, theta)
-
-
 @ti.func
-def _project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: ti.template(),
-                      slop: ti.template(), passes: ti.template()):
+def project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: ti.template(),
+                     slop: ti.template(), passes: ti.template()):
     """Position-only removal of interpenetration beyond `slop` (m) at the end of the step.
 
     The velocity-level Signorini condition never adds overlap in a converged step and never
@@ -1974,12 +1944,6 @@ def _project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h:
     for s in range(passes):
         for k in range(nc):
             project_contact(p, wl, ct, k, n, h, slop)
-
-
-@ti.kernel
-def project_overlaps(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float,
-                     slop: float, passes: ti.i32):
-    _project_overlaps(p, wl, ct, h, slop, passes)
 
 
 @ti.kernel
@@ -2023,7 +1987,7 @@ def project_contact(p: ti.template(), wl: ti.template(), ct: ti.template(), k, n
 
 
 @ti.func
-def _wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: ti.template()):
+def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: ti.template()):
     """Force of the particles on each wall over the step: sum of contact impulses / H. Partial
     sums per (wall, chunk of WALL_CHUNK contacts) in parallel, then per wall over its chunks
     in chunk order (deterministic)."""
@@ -2046,13 +2010,9 @@ def _wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: ti.t
         wl.force[w] = s / h
 
 
-@ti.kernel
-def wall_forces(p: ti.template(), wl: ti.template(), ct: ti.template(), h: float):
-    _wall_forces(p, wl, ct, h)
-
-
 # --- the step's launches: the kernels between the host's decisions, fused ---------------------
-# Each loop of these kernels is a loop of its own, in the order in which the kernels above were
+# Each loop of these kernels is a loop of its own, in the order in which the ti.funcs above
+# (predict, bonds_prepare, ..., wall_forces; kernels of their own until session 53) were
 # launched one after the other: the same work and the same numbers, bit for bit, in two launches
 # instead of eleven. A launch costs tens of microseconds of Taichi's Python, most of a small
 # simulation's step (a bonded pair's step: 0.72 -> 0.48 ms), and each kernel compiles once per
@@ -2070,13 +2030,13 @@ def step_begin(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.te
     contacts.contact_geometry and apply_warm_start (`warm`: the schedules that do not colour
     their items; the coloured ones warm-start colour by colour after colouring)."""
     contacts._contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
-    _predict(p, h, gx, gy, gz)
+    predict(p, h, gx, gy, gz)
     if ti.static(bonds):
-        _bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                       extrap)
+        bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
+                      extrap)
         if ti.static(factor):
-            _bonds_factor(p, bd)
-    contacts._contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
+            bonds_factor(p, bd)
+    contacts.contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
     if ti.static(warm):
         _apply_warm_start(p, ct, bd)
 
@@ -2092,10 +2052,10 @@ def step_end(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.temp
     contact history, which they used to follow, read no position and write nothing that the
     projection reads, so the order changes no number."""
     if ti.static(bonds):
-        _bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                      yield_stress)
-    _integrate(p, h, theta)
+        bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
+                     yield_stress)
+    integrate(p, h, theta)
     if ti.static(project):
-        _project_overlaps(p, wl, ct, h, slop, passes)
-    _wall_forces(p, wl, ct, h)
-    contacts._save_history(ct, n)
+        project_overlaps(p, wl, ct, h, slop, passes)
+    wall_forces(p, wl, ct, h)
+    contacts.save_history(ct, n)

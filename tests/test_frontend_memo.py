@@ -52,7 +52,7 @@ def test_memoised_debug_info_equals_taichi_rendering_for_every_node(backend):
 
 
 def test_memoised_source_lines_equal_inspect(backend):
-    for kernel in (solver.nlgs_serial, solver.integrate):
+    for kernel in (solver.nlgs_serial, solver.step_end):
         func = kernel._primal.func
         want = inspect.getsourcelines(func)
         first = kernel_impl.getsourcelines(func)
