@@ -512,7 +512,6 @@ class Simulation:
         self.last = StepRecord(self.time, 0, 0.0, 0, 0, 0)
         self.grow_events: list[str] = []
         self._refit_contacts = False
-        self._has_bonds = False          # whether this step holds bonds (_begin_step)
 
     # ---------------------------------------------------------------- construction helpers
     def _grid_dims(self) -> np.ndarray:
@@ -713,23 +712,24 @@ class Simulation:
         return (mode, law.maxwell_stiffness, law.maxwell_viscosity, law.kelvin_stiffness,
                 law.kelvin_viscosity, law.tangent_factor)
 
-    def _begin_step(self, warm_start: bool = False) -> None:
+    def _begin_step(self, warm_start: bool = False) -> bool:
         """The step up to its warm start: walls moved to the step's start, contacts built, the
         predictor, the bonds' and the contacts' terms of the step (benchmarks/ start from here to
         solve one step in their own ways), and with `warm_start` the warm start applied (the
         schedules that do not colour their items). One launch after the contacts' count
-        (solver.step_begin)."""
+        (solver.step_begin). Returns whether the step holds bonds."""
         s = self.settings
         p, bd = self.particles, self.bonds
         self._move_walls(self.time)
         self._build_contacts(fill=False)
-        self._has_bonds = bd.total[None] > 0
+        has_bonds = bd.total[None] > 0
         sk.step_begin(p, self.wall_fields, self.neighbours, bd, self.contacts, self.alert,
                       s.time_step, self._reach_accel(), *s.gravity, s.theta,
                       self.time + s.time_step, *self._bond_law_args(),
                       s.warm_start_extrapolation, self.friction,
-                      self.bond_law.friction_after_break, int(self._has_bonds),
-                      int(self._has_bonds and s.bond_blocks), int(warm_start))
+                      self.bond_law.friction_after_break, int(has_bonds),
+                      int(has_bonds and s.bond_blocks), int(warm_start))
+        return has_bonds
 
     def _step(self) -> None:
         s = self.settings
@@ -737,7 +737,7 @@ class Simulation:
         t_end = self.time + h
         p, wl, bd = self.particles, self.wall_fields, self.bonds
         coloured = self.schedule in COLOURED
-        self._begin_step(warm_start=not coloured)
+        has_bonds = self._begin_step(warm_start=not coloured)
         ct = self.contacts
         if coloured:
             ncol, items = self._colour()
@@ -761,7 +761,7 @@ class Simulation:
         slop = s.overlap_slop * 2.0 * self.r_min
         sk.step_end(p, wl, ct, bd, h, theta, t_end, *self._bond_law_args(),
                     self.bond_law.yield_stress, slop, s.projection_passes, self.n,
-                    int(self._has_bonds), int(s.projection_passes > 0 and not coloured))
+                    int(has_bonds), int(s.projection_passes > 0 and not coloured))
         if s.projection_passes > 0 and coloured:
             for _ in range(s.projection_passes):
                 self._by_colours(colours, sk.project_overlaps_colours, p, wl, ct, bd,
