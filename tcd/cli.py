@@ -156,11 +156,15 @@ def cmd_run(args) -> int:
         print(f"tcd: warning: {scenario.source}: {key}: {reason}", file=sys.stderr)
     out_dir = Path(args.out) if args.out else Path("runs") / scenario.name
     args.out_dir = out_dir
+    source = getattr(args, "from_run", None)
+    if source and (args.resume or args.batch):
+        raise UsageError("--from starts a new run from another run's checkpoints: it takes no "
+                         "--resume (resume the new run itself with --resume) and no --batch")
     if args.resume:
         if not out_dir.is_dir():
             raise UsageError(f"nothing to resume: {out_dir} does not exist "
                              f"(run without --resume to start)")
-    else:
+    elif not source:        # (--from checks that its --out is new: tcd.branch)
         existing = _existing_results(out_dir)
         if existing:
             shown = ", ".join(str(p) for p in existing[:3])
@@ -180,7 +184,13 @@ def cmd_run(args) -> int:
         summary = run_batch(scenario, out_dir, resume=args.resume, progress=True)
     else:
         from .runner import run_scenario
-        summary = run_scenario(scenario, out_dir, resume=args.resume, progress=True, jobs=args.jobs)
+        resume = args.resume
+        if source:
+            from .branch import branch_run
+            print(f"tcd: {scenario.name}: going on from {source} in {out_dir}:\n"
+                  + branch_run(scenario, source, out_dir), file=sys.stderr)
+            resume = True
+        summary = run_scenario(scenario, out_dir, resume=resume, progress=True, jobs=args.jobs)
     print(f"tcd: {scenario.name}: results in {out_dir}")
     if summary:
         print(format_table(summary))
@@ -543,6 +553,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shear every sample at once in one batched simulation (a scenario whose "
                         "only stage is a shear of prepared samples; one sample per core on "
                         "the CPU, all at once on a GPU)")
+    p.add_argument("--from", dest="from_run", metavar="RUN",
+                   help="a new run that goes on from where run directory RUN's samples stand "
+                        "(their checkpoints), with this scenario's solver or output settings, "
+                        "or a longer shear (a larger displacement_mm; a finished shear is "
+                        "reopened); RUN is only read (docs/usage.md, \"Going on from another "
+                        "run\")")
     p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
                    help="run only these of the scenario's seeds (e.g. to split a study across "
                         "invocations; the summary then holds these samples, and with --resume "

@@ -1,0 +1,249 @@
+"""`tcd run NEW.toml --from RUN`: a new run that goes on from where another run's samples
+stand (their checkpoints), under other solver or output settings, or with a longer shear.
+
+What it is for: a convergence check from one state (the same test continued at another time
+step or tolerance, as LMGC90 users restart from a saved state with a new command file), and a
+shear test taken further than it was planned (`displacement_mm` larger) without running it
+again from the start.
+
+What may differ between RUN's scenario and NEW's (anything else is refused, naming it):
+    name, description and seeds (each seed of NEW must be one of RUN's samples),
+    [solver] and [output] (every key; under another `time_step` what is left of the step
+    budget of the phase under way is rescaled, so that the phase ends at the same simulated
+    time; the steps it took stay counted as taken),
+    the stage under way: its `tolerance`, `max_sweeps` and `smoothing_window_mm`, and a shear
+    stage's `displacement_mm` (not below where the test stands; a finished run whose last
+    stage is a shear is reopened when it is larger),
+    the stages not started yet, wholly.
+[material] and [bond] define the grains and bonds the state holds: to shear a prepared sample
+with another bond law, start a shear run from its `prepared.h5` (`sample = ...`).
+
+RUN is only read (under each sample's lock, so not while a run writes there). The new run's
+folder gets RUN's files of each sample (states, series of finished stages, prepared sample)
+and a checkpoint rewritten for NEW's scenario, which records where it came from
+(`branched_from` in the sample's summary.json): its series and snapshots hold the whole
+history, RUN's part first. Then it is resumed like an interrupted run of NEW
+(`runner.run_scenario(..., resume=True)`), and a later interruption resumes with `--resume`.
+"""
+from __future__ import annotations
+
+import pathlib
+import re
+import shutil
+
+import h5py
+import numpy as np
+
+from . import io
+from .protocols import Phase
+
+#: what may change in the stage under way, by its kind
+STAGE_UNDER_WAY = {"shear": ("tolerance", "max_sweeps", "smoothing_window_mm", "displacement_mm"),
+                   "prepare": ()}
+_STAGE_KEY = re.compile(r"^stage\[(\d+)\]\.([A-Za-z_]+)")
+
+
+class BranchError(ValueError):
+    """A branch that cannot be made: the message names the run, the sample and the reason."""
+
+
+def _key(line: str) -> str:
+    """The key of one `io.differences` line ("solver.time_step: 0.0002 -> 0.0001")."""
+    return line.split(": ", 1)[0]
+
+
+def _refused(changes: list, stage_idx: int, started: bool, stages) -> list:
+    """The lines of `changes` that a branch from stage `stage_idx` (0-based; `started`: some
+    of it has run) may not make."""
+    bad = []
+    for line in changes:
+        key = _key(line)
+        if key in ("name",) or key.startswith(("solver.", "output.")):
+            continue
+        m = _STAGE_KEY.match(key)
+        if m:
+            k = int(m.group(1)) - 1                 # differences number the stages from 1
+            if k > stage_idx or (k == stage_idx and not started):
+                continue                            # not started: wholly NEW's
+            if (k == stage_idx and k < len(stages)
+                    and m.group(2) in STAGE_UNDER_WAY.get(stages[k].kind, ())):
+                continue
+        bad.append(line)
+    return bad
+
+
+def _shear_end(stage, t0: float) -> float:
+    """The simulated time at which a shear stage that started at `t0` has moved its ring by
+    its `displacement_mm`."""
+    return t0 + stage.displacement_mm * 1e-3 / (stage.velocity_mm_per_min * 1e-3 / 60.0)
+
+
+def _series_of(path: pathlib.Path) -> tuple[dict, list]:
+    """A finished stage's series file as checkpoint arrays ("series/<key>") and its column
+    order (the CSV's header, else by name)."""
+    found = io.read_series(path)
+    keys = sorted(found)
+    csv = path.with_suffix(".csv")
+    if csv.is_file():
+        with open(csv, encoding="utf-8") as fh:
+            header = [c.split(" [", 1)[0] for c in fh.readline().strip().split(",")]
+        if sorted(header) == keys:
+            keys = header
+    return {"series/" + k: np.asarray(found[k]) for k in keys}, keys
+
+
+def plan_branch(scenario, source, out) -> dict:
+    """Check that `scenario` can go on from run `source` into `out` and work out, per seed,
+    the checkpoint it starts from; nothing is written. Returns {seed: (arrays, meta, files)}."""
+    from .config import ScenarioError, parse_scenario
+    from .runner import SAMPLE_CHECKPOINT_KEYS, _scenario_record
+    source, out = pathlib.Path(source), pathlib.Path(out)
+    if not source.is_dir():
+        raise BranchError(f"--from {source}: not a run directory")
+    if (source / "batch_checkpoint.h5").exists():
+        raise BranchError(f"--from {source}: a batched run (--batch) keeps one checkpoint for "
+                          "all its samples; --from goes on from a run of one sample per process")
+    if out.resolve() == source.resolve() or source.resolve() in out.resolve().parents:
+        raise BranchError(f"--out {out}: must be a new directory outside the run it goes on "
+                          f"from ({source})")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise BranchError(f"--out {out}: exists and is not empty; --from writes a new run")
+    plans = {}
+    for seed in scenario.seeds:
+        sample = source / f"sample_{seed}"
+        ck = sample / "checkpoint.h5"
+        if not ck.is_file():
+            raise BranchError(f"--from {source}: no checkpoint of seed {seed} ({ck}): the run "
+                              "has no such sample, or it stopped before its first checkpoint")
+        arrays, meta = io.load_checkpoint(ck)
+        missing = [k for k in SAMPLE_CHECKPOINT_KEYS + ("scenario_text",) if k not in meta]
+        if missing:
+            raise BranchError(f"{ck}: not a checkpoint of a tcd run, or of one too old to "
+                              f"branch from (its meta lacks {', '.join(missing)})")
+        if meta.get("seed", seed) != seed:
+            raise BranchError(f"{ck}: holds seed {meta.get('seed')}, not {seed}")
+        try:
+            old = parse_scenario(str(meta["scenario_text"]), scenario.source)
+        except ScenarioError as exc:
+            reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
+            raise BranchError(f"{ck}: the scenario of that run cannot be read back ({reasons})") \
+                from None
+        changes = io.differences(_scenario_record(old), _scenario_record(scenario), base=1)
+        if len(old.stages) != len(scenario.stages):
+            raise BranchError(f"{ck}: that run has {len(old.stages)} stage(s), the scenario "
+                              f"{len(scenario.stages)}: --from keeps the stages")
+        stage_idx, phase_idx = int(meta["stage"]), int(meta["phase_index"])
+        phase = Phase.from_json(meta["phase"]) if meta["phase"] else None
+        sip = int(meta["step_in_phase"])
+        result = meta["result"]
+        t, h_old, h_new = float(meta["time"]), old.solver.time_step, scenario.solver.time_step
+        files = [p for p in sorted(sample.iterdir()) if p.is_file() and p.name not in
+                 ("checkpoint.h5", "summary.json", ".tcd.lock") and ".tmp" not in p.name]
+        reopen = stage_idx == len(scenario.stages)
+        if reopen:              # finished: only a longer shear of its last stage goes on
+            last, was = scenario.stages[-1], old.stages[-1]
+            if not (last.kind == "shear" and was.kind == "shear"
+                    and last.displacement_mm > was.displacement_mm and result.get("last_phase")):
+                raise BranchError(
+                    f"{ck}: that run finished (t = {t:g} s); there is nothing left to run. A "
+                    "finished shear goes on with a larger displacement_mm of its last stage")
+            stage_idx = len(scenario.stages) - 1
+            phase_idx, phase = 0, Phase.from_json(result["last_phase"])
+            sip = phase.steps
+        started = phase is not None or phase_idx > 0
+        refused = _refused(changes, stage_idx, started, scenario.stages)
+        if refused:
+            where = (f"stage {stage_idx + 1} ({scenario.stages[stage_idx].kind})"
+                     if stage_idx < len(scenario.stages) else "the end")
+            raise BranchError(
+                f"{ck}: --from goes on with other [solver] or [output] settings, the stage under "
+                f"way's tolerance, max_sweeps, smoothing_window_mm or shear displacement_mm, and "
+                f"stages not started yet; this run stands in {where}, and the scenario changes "
+                f"{io.shown_differences(refused)}. Start a new run for that (a shear can start "
+                "from a prepared sample: `sample = ...`)")
+        if phase is not None:
+            stage = scenario.stages[stage_idx]
+            # the steps taken stay counted as taken; what is left of the phase's budget (and
+            # of a settling phase's least steps) is rescaled to end at the same time
+            same_h = h_new == h_old
+            ratio = h_old / h_new
+            if stage.kind == "shear" and phase.name == "shear":
+                was = old.stages[stage_idx]
+                if same_h and stage.displacement_mm == was.displacement_mm:
+                    remaining = phase.steps - sip
+                else:
+                    remaining = int(round((_shear_end(stage, float(phase.info["t0"])) - t) / h_new))
+                if remaining < 0:
+                    moved = (t - float(phase.info["t0"])) * stage.velocity_mm_per_min / 60.0
+                    raise BranchError(f"{ck}: its shear has moved the ring {moved:.4g} mm, past "
+                                      f"the displacement_mm {stage.displacement_mm:g} asked")
+            else:
+                remaining = phase.steps - sip if same_h else int(round((phase.steps - sip) * ratio))
+            phase.steps = sip + remaining
+            if not same_h and phase.min_steps > sip:
+                phase.min_steps = sip + int(round((phase.min_steps - sip) * ratio))
+        record = {"run": str(source.resolve()), "time": t, "step": int(meta["step"]),
+                  "stage": stage_idx + 1, "phase": phase.name if phase else None,
+                  "changes": changes}
+        new_meta = dict(meta)
+        new_meta.update({"scenario_text": scenario.text, "stage": stage_idx,
+                         "phase_index": phase_idx, "step_in_phase": sip,
+                         "phase": phase.to_json() if phase else None})
+        new_result = dict(result)
+        new_result["branched_from"] = list(result.get("branched_from", [])) + [record]
+        if reopen:
+            key = f"{stage_idx}:{scenario.stages[stage_idx].kind}"
+            new_result["stages"] = {k: v for k, v in result["stages"].items() if k != key}
+            phases = list(result.get("phases", []))
+            for k in range(len(phases) - 1, -1, -1):
+                if phases[k].get("stage_index") == stage_idx:
+                    del phases[k]
+                    break
+            new_result["phases"] = phases
+            series_file = sample / f"{scenario.stages[stage_idx].kind}_series.h5"
+            if not series_file.is_file():
+                raise BranchError(f"{series_file}: missing; the finished stage's series is "
+                                  "needed to go on with it")
+            arrays = {k: v for k, v in arrays.items() if not k.startswith("series/")}
+            series, keys = _series_of(series_file)
+            arrays.update(series)
+            new_meta["series_keys"] = keys
+            files = [p for p in files if p != series_file and p != series_file.with_suffix(".csv")]
+        new_meta["result"] = new_result
+        plans[seed] = (arrays, new_meta, files)
+    return plans
+
+
+def branch_run(scenario, source, out) -> str:
+    """Write the new run's folder `out` for `scenario` from run `source` (see the module
+    docstring): its records, and per seed RUN's files and the rewritten checkpoint. Every
+    check comes first (plan_branch), so a refused branch writes nothing. Returns one line per
+    seed saying where it goes on from."""
+    from .runner import record_scenario, run_lock
+    out = pathlib.Path(out)
+    plans = plan_branch(scenario, source, out)
+    for seed, (arrays, meta, files) in plans.items():
+        src = pathlib.Path(source) / f"sample_{seed}"
+        dst = out / f"sample_{seed}"
+        with run_lock(src):         # not while a run writes there
+            dst.mkdir(parents=True, exist_ok=True)
+            for path in files:
+                with io.atomic_path(dst / path.name) as tmp:
+                    shutil.copyfile(path, tmp)
+            states = dst / "states.h5"
+            if states.is_file():    # its scenario: the one its frames go on under
+                with io.atomic_path(states) as tmp:
+                    shutil.copyfile(states, tmp)
+                    with h5py.File(tmp, "a") as f:
+                        f.attrs["scenario"] = scenario.text
+                        f.attrs["branched_from"] = str(pathlib.Path(source).resolve())
+            io.save_checkpoint(dst / "checkpoint.h5", arrays, meta)
+    record_scenario(scenario, out, resume=False)
+    lines = []
+    for seed, (_, meta, _) in plans.items():
+        rec = meta["result"]["branched_from"][-1]
+        lines.append(f"seed {seed}: from {rec['run']} at t = {rec['time']:g} s (step "
+                     f"{rec['step']}, stage {rec['stage']}"
+                     f"{', phase ' + rec['phase'] if rec['phase'] else ''}), "
+                     f"{len(rec['changes'])} setting(s) changed")
+    return "\n".join(lines)

@@ -1,0 +1,169 @@
+"""`tcd run NEW.toml --from RUN`: a new run that goes on from another run's checkpoints
+(tcd/branch.py): unchanged it gives the uninterrupted run's numbers bit for bit, a longer shear
+of a finished run gives the longer run's, another time step ends the phase where it ended,
+RUN is only read, and what it may not change is refused before anything is written."""
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_tcd
+from tcd import io
+from test_runner import MICRO, _interrupt_after, _shear_only, load_here
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    """The micro sample of test_runner, prepared once (its shear stage dropped)."""
+    d = tmp_path_factory.mktemp("branch")
+    text = MICRO[:MICRO.index('[[stage]]\nkind = "shear"')]
+    (d / "prep.toml").write_text(text)
+    assert run_tcd(["run", str(d / "prep.toml"), "--out", str(d / "prep")]) == 0
+    return d / "prep" / "sample_3" / "prepared.h5"
+
+
+@pytest.fixture(scope="module")
+def shear(prepared, tmp_path_factory):
+    """(scenario path, finished run) of the shear of that sample to 0.2 mm."""
+    d = tmp_path_factory.mktemp("shear")
+    path = d / "shear.toml"
+    path.write_text(_shear_only(prepared.as_posix()))
+    assert run_tcd(["run", str(path), "--out", str(d / "whole")]) == 0
+    return path, d / "whole"
+
+
+def _digests(run):
+    return {p.relative_to(run): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(run.rglob("*")) if p.is_file() and p.name != ".tcd.lock"}
+
+
+def _interrupted(scenario, out, monkeypatch, checks=15):
+    """`scenario` run into `out` and stopped as by a Ctrl-C after `checks` checks."""
+    from tcd import runner
+    monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(checks))
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_scenario(load_here(scenario), out, progress=False)
+    monkeypatch.undo()
+    _, meta = io.load_checkpoint(out / "sample_3" / "checkpoint.h5")
+    return meta
+
+
+def _series(run):
+    return io.read_series(run / "sample_3" / "shear_series.h5")
+
+
+def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as_it_was(
+        shear, tmp_path, monkeypatch):
+    scenario, whole = shear
+    cut = tmp_path / "cut"
+    meta = _interrupted(scenario, cut, monkeypatch)
+    assert 0 < meta["step_in_phase"] < meta["phase"]["steps"]
+    before = _digests(cut)
+    assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
+    assert _digests(cut) == before                          # the source is only read
+    one, two = _series(whole), _series(tmp_path / "new")
+    assert set(one) == set(two)
+    for key in one:
+        assert np.array_equal(one[key], two[key]), key
+    a = json.loads((whole / "sample_3" / "summary.json").read_text())
+    b = json.loads((tmp_path / "new" / "sample_3" / "summary.json").read_text())
+    for key in ("tau_peak_MPa", "d_peak_mm", "bonds_total", "bonds_broken"):
+        assert a[key] == b[key], key
+    [record] = b["branched_from"]
+    assert record["run"] == str(cut.resolve())
+    assert record["step"] == meta["step"] and record["time"] == meta["time"]
+    assert record["changes"] == [] and record["phase"] == "shear"
+    # the new run's frames: the source's up to the checkpoint, then its own, as uninterrupted
+    assert io.frame_count(tmp_path / "new" / "sample_3" / "states.h5") == \
+        io.frame_count(whole / "sample_3" / "states.h5")
+
+
+def test_a_finished_shear_goes_on_to_a_larger_displacement_as_the_longer_run(shear, tmp_path):
+    scenario, whole = shear
+    longer = tmp_path / "longer.toml"
+    longer.write_text(scenario.read_text().replace("displacement_mm = 0.2", "displacement_mm = 0.3"))
+    assert run_tcd(["run", str(longer), "--out", str(tmp_path / "direct")]) == 0
+    assert run_tcd(["run", str(longer), "--from", str(whole), "--out", str(tmp_path / "on")]) == 0
+    one, two = _series(tmp_path / "direct"), _series(tmp_path / "on")
+    assert len(two["time"]) > len(_series(whole)["time"])
+    for key in one:
+        assert np.array_equal(one[key], two[key]), key
+    a = json.loads((tmp_path / "direct" / "sample_3" / "summary.json").read_text())
+    b = json.loads((tmp_path / "on" / "sample_3" / "summary.json").read_text())
+    for key in ("tau_peak_MPa", "d_peak_mm", "residual_MPa", "bonds_broken"):
+        assert a[key] == b[key], key
+    assert b["stages"]["0:shear"]["steps"] == a["stages"]["0:shear"]["steps"] == len(one["time"])
+    assert b["branched_from"][0]["changes"] == ["stage[1].displacement_mm: 0.2 -> 0.3"]
+    # the CSV too holds the whole series, its columns in their order
+    head = (tmp_path / "on" / "sample_3" / "shear_series.csv").read_text().splitlines()
+    assert head[0] == (tmp_path / "direct" / "sample_3" / "shear_series.csv").read_text() \
+        .splitlines()[0] and len(head) == len(one["time"]) + 1
+
+
+def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear, tmp_path,
+                                                                            monkeypatch):
+    scenario, whole = shear
+    cut = tmp_path / "cut"
+    meta = _interrupted(scenario, cut, monkeypatch)
+    n = meta["step_in_phase"]
+    finer = tmp_path / "finer.toml"
+    finer.write_text(scenario.read_text().replace("time_step = 5e-4",
+                                                  "time_step = 2.5e-4\ntolerance = 2e-5"))
+    assert run_tcd(["run", str(finer), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
+    cut_series, got = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")[0], _series(tmp_path / "new")
+    for key in got:                 # the source's steps, then the new ones
+        assert np.array_equal(got[key][:n], cut_series["series/" + key]), key
+    whole_s = _series(whole)
+    m = len(whole_s["time"])
+    assert len(got["time"]) == n + 2 * (m - n)
+    v = 600.0 / 60.0 * 1e-3                                  # the ring's speed (m/s)
+    assert np.allclose(np.diff(got["displacement"][n - 1:]), v * 2.5e-4, rtol=1e-9)
+    assert got["displacement"][-1] == pytest.approx(whole_s["displacement"][-1], rel=1e-9)
+    assert got["time"][-1] == pytest.approx(whole_s["time"][-1], abs=1e-9)
+    # the new tolerance from the branch on (a step at the 500-sweep cap stops above it)
+    capped = got["sweeps"] >= 500
+    assert np.all((got["residual"][n:] <= 2e-5) | capped[n:])
+    assert np.any(got["residual"][:n][~capped[:n]] > 2e-5)
+    b = json.loads((tmp_path / "new" / "sample_3" / "summary.json").read_text())
+    assert b["phases"][-1]["steps"] == b["stages"]["0:shear"]["steps"] == len(got["time"])
+    assert sorted(b["branched_from"][0]["changes"]) == ["solver.time_step: 0.0005 -> 0.00025",
+                                                        "solver.tolerance: 0.0001 -> 2e-05"]
+
+
+def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, tmp_path,
+                                                                        monkeypatch, capsys):
+    scenario, whole = shear
+    text = scenario.read_text()
+    cut = tmp_path / "cut"
+    _interrupted(scenario, cut, monkeypatch)
+    cases = {
+        "material": (text.replace("[solver]", "[material]\nfriction = 0.5\n[solver]"), cut,
+                     "material.friction: 0.7 -> 0.5"),
+        "ring speed": (text.replace("velocity_mm_per_min = 600.0", "velocity_mm_per_min = 300.0"),
+                       cut, "stage[1].velocity_mm_per_min"),
+        "behind": (text.replace("displacement_mm = 0.2", "displacement_mm = 0.03"), cut,
+                   "past the displacement_mm 0.03 asked"),
+        "finished": (text, whole, "that run finished"),
+        "seed": (text.replace("seeds = [3]", "seeds = [3, 4]"), cut, "no checkpoint of seed 4"),
+        "not a run": (text, tmp_path / "nowhere", "not a run directory"),
+    }
+    for name, (body, source, message) in cases.items():
+        path = tmp_path / f"{name.replace(' ', '_')}.toml"
+        path.write_text(body)
+        out = tmp_path / f"out_{name.replace(' ', '_')}"
+        assert run_tcd(["run", str(path), "--from", str(source), "--out", str(out)]) != 0, name
+        err = capsys.readouterr().err
+        assert message in err, (name, err)
+        assert not out.exists(), name                       # nothing written
+    # a new run's folder only: not one that holds anything, nor the source itself
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    for out, message in ((busy, "exists and is not empty"), (cut, "must be a new directory")):
+        assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(out)]) != 0
+        assert message in capsys.readouterr().err
+    assert (busy / "notes.txt").read_text() == "mine"
+    assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "x"),
+                    "--resume"]) != 0
+    assert "--from starts a new run" in capsys.readouterr().err
