@@ -147,7 +147,10 @@ def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, t
         "finished": (text, whole, "that run finished"),
         "seed": (text.replace("seeds = [3]", "seeds = [3, 4]"), cut, "no checkpoint of seed 4"),
         "not a run": (text, tmp_path / "nowhere", "not a run directory"),
+        "batched": (text, tmp_path / "batched", "a batched run (--batch)"),
     }
+    (tmp_path / "batched").mkdir()
+    (tmp_path / "batched" / "batch_checkpoint.h5").write_bytes(b"")
     for name, (body, source, message) in cases.items():
         path = tmp_path / f"{name.replace(' ', '_')}.toml"
         path.write_text(body)
