@@ -497,7 +497,18 @@ def _done_line(path: pathlib.Path) -> str:
     wall = res.get("wall_time_s")
     if isinstance(wall, dict) and all(isinstance(v, (int, float)) for v in wall.values()):
         parts.append(f"{sum(wall.values()):.0f} s of wall time")
-    return ", ".join(parts)
+    return ", ".join(parts) + _branch_note(res)
+
+
+def _branch_note(result) -> str:
+    """"; went on from RUN at t = ... s (N changes)" for a sample of a `tcd run --from` run
+    (its result's `branched_from`, tcd.branch), else ""."""
+    try:
+        rec = result["branched_from"][-1]
+        return (f"; went on from {rec['run']} at t = {float(rec['time']):.4f} s "
+                f"({len(rec['changes'])} setting(s) changed)")
+    except (KeyError, IndexError, TypeError, ValueError):
+        return ""
 
 
 def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False) -> str:
@@ -523,7 +534,7 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False)
         elif isinstance(meta.get("phase_index"), int):     # between two phases
             text += f", before its phase {meta['phase_index'] + 1}"
         text += f", t = {float(meta['time']):.4f} s; checkpoint {path.name} written {created or '?'}"
-        return text
+        return text + ("" if batched else _branch_note(meta.get("result")))
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         return f"a checkpoint that cannot be read ({path}: {exc})"
 

@@ -74,6 +74,10 @@ def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as
     assert record["run"] == str(cut.resolve())
     assert record["step"] == meta["step"] and record["time"] == meta["time"]
     assert record["changes"] == [] and record["phase"] == "shear"
+    from tcd import runner
+    assert ("sample_3: done: 80 grains" in runner.run_info(tmp_path / "new")
+            and f"went on from {cut.resolve()} at t = {meta['time']:.4f} s (0 setting(s) changed)"
+            in runner.run_info(tmp_path / "new")), runner.run_info(tmp_path / "new")
     # the new run's frames: the source's up to the checkpoint, then its own, as uninterrupted
     assert io.frame_count(tmp_path / "new" / "sample_3" / "states.h5") == \
         io.frame_count(whole / "sample_3" / "states.h5")
