@@ -14,7 +14,8 @@ What may differ between RUN's scenario and NEW's (anything else is refused, nami
     the stage under way: its `tolerance`, `max_sweeps` and `smoothing_window_mm`, and a shear
     stage's `displacement_mm` (not below where the test stands; a finished run whose last
     stage is a shear is reopened when it is larger),
-    the stages not started yet, wholly.
+    the stages not started yet, wholly; a started shear's `sample` path (the sample was read
+    already: a scenario file moved elsewhere writes its relative path anew).
 [material] and [bond] define the grains and bonds the state holds: to shear a prepared sample
 with another bond law, start a shear run from its `prepared.h5` (`sample = ...`).
 
@@ -67,6 +68,8 @@ def _refused(changes: list, stage_idx: int, started: bool, stages) -> list:
                 continue                            # not started: wholly NEW's
             if (k == stage_idx and k < len(stages)
                     and m.group(2) in STAGE_UNDER_WAY.get(stages[k].kind, ())):
+                continue
+            if m.group(2) == "sample":      # read already: the state goes on from RUN's
                 continue
         bad.append(line)
     return bad
@@ -122,13 +125,15 @@ def plan_branch(scenario, source, out) -> dict:
                               f"branch from (its meta lacks {', '.join(missing)})")
         if meta.get("seed", seed) != seed:
             raise BranchError(f"{ck}: holds seed {meta.get('seed')}, not {seed}")
-        try:
-            old = parse_scenario(str(meta["scenario_text"]), scenario.source)
+        try:        # `sample` paths as written: RUN's scenario file may have lain elsewhere
+            old = parse_scenario(str(meta["scenario_text"]), scenario.source,
+                                 resolve_samples=False)
         except ScenarioError as exc:
             reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
             raise BranchError(f"{ck}: the scenario of that run cannot be read back ({reasons})") \
                 from None
-        changes = io.differences(_scenario_record(old), _scenario_record(scenario), base=1)
+        written = parse_scenario(scenario.text, scenario.source, resolve_samples=False)
+        changes = io.differences(_scenario_record(old), _scenario_record(written), base=1)
         if len(old.stages) != len(scenario.stages):
             raise BranchError(f"{ck}: that run has {len(old.stages)} stage(s), the scenario "
                               f"{len(scenario.stages)}: --from keeps the stages")

@@ -4,6 +4,7 @@ of a finished run gives the longer run's, another time step ends the phase where
 RUN is only read, and what it may not change is refused before anything is written."""
 import hashlib
 import json
+import os
 
 import numpy as np
 import pytest
@@ -111,9 +112,14 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
     cut = tmp_path / "cut"
     meta = _interrupted(scenario, cut, monkeypatch)
     n = meta["step_in_phase"]
-    finer = tmp_path / "finer.toml"
-    finer.write_text(scenario.read_text().replace("time_step = 5e-4",
-                                                  "time_step = 2.5e-4\ntolerance = 2e-5"))
+    # in another folder, its sample's path written relative to it
+    (tmp_path / "elsewhere").mkdir()
+    finer = tmp_path / "elsewhere" / "finer.toml"
+    text = scenario.read_text()
+    sample = text.split('sample = "', 1)[1].split('"', 1)[0]
+    rel = os.path.relpath(sample, finer.parent)
+    finer.write_text(text.replace("time_step = 5e-4", "time_step = 2.5e-4\ntolerance = 2e-5")
+                     .replace(sample, rel))
     assert run_tcd(["run", str(finer), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
     cut_series, got = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")[0], _series(tmp_path / "new")
     for key in got:                 # the source's steps, then the new ones
@@ -131,8 +137,9 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
     assert np.any(got["residual"][:n][~capped[:n]] > 2e-5)
     b = json.loads((tmp_path / "new" / "sample_3" / "summary.json").read_text())
     assert b["phases"][-1]["steps"] == b["stages"]["0:shear"]["steps"] == len(got["time"])
-    assert sorted(b["branched_from"][0]["changes"]) == ["solver.time_step: 0.0005 -> 0.00025",
-                                                        "solver.tolerance: 0.0001 -> 2e-05"]
+    assert sorted(b["branched_from"][0]["changes"]) == [
+        "solver.time_step: 0.0005 -> 0.00025", "solver.tolerance: 0.0001 -> 2e-05",
+        f"stage[1].sample: {sample!r} -> {rel!r}"]
 
 
 def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, tmp_path,
