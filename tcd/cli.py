@@ -319,7 +319,7 @@ def cmd_figures(args) -> int:
                          "for their figures")
     from . import figures
     written = _figure_warnings_as_lines(lambda: figures.make_figures(
-        run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out))
+        run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out, velocity=args.velocity))
     for path in written:
         print(path)
     if not written:
@@ -625,6 +625,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a run directory; several: the parts of one study, shown together")
     p.add_argument("--out", metavar="DIR", help="where to write them (default: inside RUN_DIR; "
                                                 "needed with several RUN_DIRs)")
+    p.add_argument("--velocity", choices=("mean", "instant"), default="mean",
+                   help="Fig. 3: each grain's mean velocity between two snapshots (the paper's "
+                        "average velocity of the grains; default) or the snapshot's own")
     p.set_defaults(handler=cmd_figures)
 
     p = sub.add_parser("compare", help="several runs side by side (a parameter study): their "

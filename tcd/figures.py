@@ -714,7 +714,8 @@ def render_frames(stages: list[tuple[float, str]], peak_time: float) -> tuple[in
     return sample_frame, [start, at_peak]
 
 
-def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -> None:
+def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list,
+                    velocity: str = "mean") -> None:
     sample = next((s for s in samples if (s.directory / STATES_NAME).is_file()), None)
     if sample is None:
         warnings.warn(f"fig2_sample.png and fig3_velocity.png skipped: no sample has a "
@@ -737,7 +738,8 @@ def _render_figures(samples: list[SampleCurves], out_dir: Path, written: list) -
                                                                  frame=sample_frame))]
     if velocity_frames:
         jobs.append(("fig3_velocity.png",
-                     lambda out: render.figure_velocity(states, out, frames=velocity_frames)))
+                     lambda out: render.figure_velocity(states, out, frames=velocity_frames,
+                                                        velocity=velocity)))
     else:
         warnings.warn(f"fig3_velocity.png skipped: {states} has no 'shear' frame",
                       FigureWarning, stacklevel=3)
@@ -770,15 +772,21 @@ def make_folder(out_dir: Path) -> None:
                          f"{exc.strerror or exc}") from None
 
 
-def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
+def make_figures(run_dir, out_dir=None, *, render: bool = True,
+                 velocity: str = "mean") -> list[Path]:
     """Write Fig. 4 (png, pdf), Table 2 (md, csv, png), bonds_broken.png and, with `render`,
     Fig. 2 and Fig. 3 of the run in `run_dir` into `out_dir` (default run_dir/figures).
+    `velocity`: what Fig. 3 shows, "mean" (the paper's average velocity of the grains, over the
+    interval between two snapshots) or "instant" (`tcd.render.figure_velocity`).
 
     `run_dir` may be a list of run directories of one study (split with ``tcd run --seeds``):
     their samples are shown together, `out_dir` must then be given, and the merged summary is
     written there too (:data:`STUDY_SUMMARY_NAME`). Returns the files written. Skipped
     samples and figures give a :class:`FigureWarning`.
     """
+    from .render import VELOCITY_KINDS
+    if velocity not in VELOCITY_KINDS:
+        raise ValueError(f"velocity {velocity!r}: expected one of {', '.join(VELOCITY_KINDS)}")
     run_dirs = _as_run_dirs(run_dir)
     several = len(run_dirs) > 1
     if several and out_dir is None:
@@ -808,7 +816,7 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True) -> list[Path]:
     figure_table2(rows, out_dir / "table2.png", written, note)
     figure_bonds_broken(samples, summary, out_dir / "bonds_broken.png", written)
     if render:
-        _render_figures(samples, out_dir, written)
+        _render_figures(samples, out_dir, written, velocity)
     return written
 
 
@@ -821,10 +829,14 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="output folder (default RUN_DIR/figures; "
                         "needed with several run directories)")
     parser.add_argument("--no-render", action="store_true", help="skip Fig. 2 and Fig. 3")
+    parser.add_argument("--velocity", choices=("mean", "instant"), default="mean",
+                        help="Fig. 3: each grain's mean velocity between two snapshots (the "
+                             "paper's average velocity; default) or the snapshot's own")
     args = parser.parse_args(argv)
     if len(args.run_dir) > 1 and args.out is None:
         parser.error("several run directories: give --out")
-    for path in make_figures(args.run_dir, args.out, render=not args.no_render):
+    for path in make_figures(args.run_dir, args.out, render=not args.no_render,
+                             velocity=args.velocity):
         print(os.fspath(path))
     return 0
 

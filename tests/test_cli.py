@@ -365,12 +365,19 @@ def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backe
 
 
 def test_figures_prints_written_files(tmp_path, stub, capsys):
-    stub("figures", make_figures=lambda run_dir, out_dir=None: [tmp_path / "fig1.png"])
+    asked = []
+    stub("figures", make_figures=lambda run_dir, out_dir=None, velocity="mean":
+         asked.append(velocity) or [tmp_path / "fig1.png"])
     assert main(["figures", str(tmp_path)]) == 0
     assert str(tmp_path / "fig1.png") in capsys.readouterr().out
+    assert main(["figures", str(tmp_path), "--velocity", "instant"]) == 0
+    assert asked == ["mean", "instant"]                 # Fig. 3: the mean velocity by default
+    assert main(["figures", str(tmp_path), "--velocity", "average"]) == 2
+    assert "invalid choice: 'average'" in capsys.readouterr().err
     assert main(["figures", str(tmp_path / "nope")]) == 2
     # several run directories (one study split with --seeds): all are passed, --out is needed
-    stub("figures", make_figures=lambda run_dir, out_dir=None: [pathlib.Path(out_dir) / "table2.md"])
+    stub("figures", make_figures=lambda run_dir, out_dir=None, velocity="mean":
+         [pathlib.Path(out_dir) / "table2.md"])
     (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
     assert main(["figures", str(tmp_path / "a"), str(tmp_path / "b")]) == 2
     assert "give --out" in capsys.readouterr().err

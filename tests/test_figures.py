@@ -342,8 +342,9 @@ def test_make_figures_renders_fig2_and_fig3_at_the_right_frames(tmp_path, monkey
     calls = {}
 
     def fake(name):
-        def draw(path, out, frame=None, frames=None):
+        def draw(path, out, frame=None, frames=None, velocity=None):
             calls[name] = (path, frame if frames is None else list(frames))
+            calls[name + " velocity"] = velocity
             iio.imwrite(out, np.zeros((8, 8, 3), np.uint8))
         return draw
 
@@ -352,6 +353,11 @@ def test_make_figures_renders_fig2_and_fig3_at_the_right_frames(tmp_path, monkey
     written = make_figures(run)
     assert calls["fig2"] == (run / "sample_7" / "states.h5", 1)   # last "prepare" frame
     assert calls["fig3"][1] == [3, 4]                              # early shear, nearest peak
+    assert calls["fig3 velocity"] == "mean"                        # the paper's average velocity
+    make_figures(run, tmp_path / "instant", velocity="instant")
+    assert calls["fig3 velocity"] == "instant"
+    with pytest.raises(ValueError, match="velocity 'average': expected one of mean, instant"):
+        make_figures(run, tmp_path / "bad", velocity="average")
     assert {"fig2_sample.png", "fig3_velocity.png"} <= {p.name for p in written}
 
 

@@ -413,7 +413,8 @@ def test_fig3_colours_grains_by_their_velocity_over_the_ring_speed(tmp_path, mon
     cmap = matplotlib.colormaps["viridis"]
     lo, hi = render.VELOCITY_RANGE
     monkeypatch.setattr(render, "_render", spy)
-    render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=80)
+    render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=80,
+                           velocity="instant")
     for colors in seen["colors"]:
         assert np.allclose(colors[0], cmap((0.0 - lo) / (hi - lo))[:3])    # at rest
         assert np.allclose(colors[1], cmap((1.0 - lo) / (hi - lo))[:3])    # with the ring
@@ -530,7 +531,8 @@ def test_fig3_colours_signed_vx_and_tops_the_speed_scale_at_the_99th_percentile(
     monkeypatch.setattr(render, "value_colors", spy)
     ring_v = 1e-3
     _velocity_states(tmp_path / "a.h5", [[-ring_v, 0, 0], [ring_v, 0, 0]], ring_v)
-    render.figure_velocity(tmp_path / "a.h5", tmp_path / "a.png", [1, 2], panel_width=64)
+    render.figure_velocity(tmp_path / "a.h5", tmp_path / "a.png", [1, 2], panel_width=64,
+                           velocity="instant")
     assert seen and all(np.allclose(vals, [-1.0, 1.0]) and (lo, hi) == render.VELOCITY_RANGE
                         for vals, lo, hi in seen)
     seen.clear()
@@ -538,7 +540,62 @@ def test_fig3_colours_signed_vx_and_tops_the_speed_scale_at_the_99th_percentile(
     v[:, 2] = -1e-3
     v[0, 2] = -1.0
     _velocity_states(tmp_path / "b.h5", v, 0.0)
-    render.figure_velocity(tmp_path / "b.h5", tmp_path / "b.png", [1, 2], panel_width=64)
+    render.figure_velocity(tmp_path / "b.h5", tmp_path / "b.png", [1, 2], panel_width=64,
+                           velocity="instant")
     assert seen and all(lo == 0.0 and hi == pytest.approx(1.0, rel=1e-9) for _, lo, hi in seen)
     np.testing.assert_allclose(seen[0][0][:3], [1000.0, 1.0, 1.0], rtol=1e-9)
 
+
+
+def test_fig3_shows_each_grain_s_mean_velocity_between_two_snapshots(tmp_path, monkeypatch):
+    """Fig. 3's default, the paper's "average velocity of grains": each grain's displacement
+    from its frame to the next of the same stage over their time apart (from the previous one
+    for a stage's last frame), whatever velocity the frame holds; a frame with no frame of its
+    stage and grains next to it keeps its own velocities."""
+    import h5py
+    from tcd import render
+    seen = []
+    real = render.value_colors
+
+    def spy(values, cmap, lo, hi):
+        seen.append(np.array(values))
+        return real(values, cmap, lo, hi)
+    monkeypatch.setattr(render, "value_colors", spy)
+    ring_v = 1e-3
+    path = tmp_path / "mean.h5"
+    # frames at t = 0, 0.5, 1.0 (shear), 1.5 (another stage, other grains); the upper grain goes
+    # with the ring from 0.5 s on, the lower one is still; the frames' own velocities are noise
+    _velocity_states(path, [[5e-3, 0, -9e-3], [-4e-3, 0, 7e-3]], ring_v)
+    with h5py.File(path, "a") as f:
+        for k in (1, 2):
+            x = f[f"frames/{k:06d}/particles/x"][...]
+            x[1, 0] += ring_v * (0.5 * k - 0.5)
+            f[f"frames/{k:06d}/particles/x"][...] = x
+        g = f.create_group("frames/000003")
+        g.attrs.update(time=1.5, step=3, stage="later")
+        for key in ("particles/v", "particles/radius", "walls/kind", "walls/point",
+                    "walls/direction", "walls/radius", "walls/extent", "walls/force"):
+            g[key] = f[f"frames/000002/{key}"][...]
+        g["particles/x"] = f["frames/000002/particles/x"][...] + 0.001
+    got = {}
+    for k in (0, 1, 2):
+        frame, span = render.mean_velocity(path, k, render.load_frame(path, k))
+        got[k] = (frame["v"], span)
+    np.testing.assert_allclose(got[0][0], 0.0, atol=1e-15)               # to frame 1: still
+    np.testing.assert_allclose(got[1][0][1], [ring_v, 0, 0], rtol=1e-9)  # to frame 2
+    np.testing.assert_allclose(got[1][0][0], 0.0, atol=1e-15)
+    np.testing.assert_allclose(got[2][0][1], [ring_v, 0, 0], rtol=1e-9)  # from 1: 3 is "later"
+    assert got[1][1] == "to frame 2, ring 1.00 mm" and got[2][1].startswith("from frame 1")
+    alone = tmp_path / "alone.h5"
+    _velocity_states(alone, [[5e-3, 0, 0]], ring_v)
+    with h5py.File(alone, "a") as f:
+        for k in (0, 2):
+            f[f"frames/{k:06d}"].attrs["stage"] = "prepare"
+    frame, span = render.mean_velocity(alone, 1, render.load_frame(alone, 1))
+    assert span == "" and np.allclose(frame["v"], [[5e-3, 0, 0]])         # its own
+    render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=64)
+    assert len(seen) == 2
+    np.testing.assert_allclose(seen[0], [0.0, 1.0], atol=1e-9)           # v_x / ring
+    np.testing.assert_allclose(seen[1], [0.0, 1.0], atol=1e-9)
+    with pytest.raises(ValueError, match="velocity 'both': expected one of mean, instant"):
+        render.figure_velocity(path, tmp_path / "x.png", [1], velocity="both")
