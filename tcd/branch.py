@@ -19,7 +19,9 @@ What may differ between RUN's scenario and NEW's (anything else is refused, nami
 [material] and [bond] define the grains and bonds the state holds: to shear a prepared sample
 with another bond law, start a shear run from its `prepared.h5` (`sample = ...`).
 
-RUN is only read (under each sample's lock, so not while a run writes there). The new run's
+The backend (`--arch`, `--precision`) may differ too; a change of it is recorded with the others.
+RUN is only read, under a shared hold of its locks: not while a run writes there (refused,
+naming the process), and no run starts there while the files are copied. The new run's
 folder gets RUN's files of each sample (states, series of finished stages, prepared sample)
 and a checkpoint rewritten for NEW's scenario, which records where it came from
 (`branched_from` in the sample's summary.json): its series and snapshots hold the whole
@@ -28,6 +30,8 @@ history, RUN's part first. Then it is resumed like an interrupted run of NEW
 """
 from __future__ import annotations
 
+import contextlib
+import json
 import pathlib
 import re
 import shutil
@@ -37,6 +41,7 @@ import numpy as np
 
 from . import io
 from .protocols import Phase
+from .runner import LOCK_FILE
 
 #: what may change in the stage under way, by its kind
 STAGE_UNDER_WAY = {"shear": ("tolerance", "max_sweeps", "smoothing_window_mm", "displacement_mm"),
@@ -112,6 +117,15 @@ def plan_branch(scenario, source, out) -> dict:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise BranchError(f"--out {out}: exists and is not empty; --from writes a new run")
     plans = {}
+    backend_changes = []        # RUN's backend (run.json) against this run's
+    try:
+        started = json.loads((source / "run.json").read_text())
+        for key in ("arch", "precision"):
+            was, now = started.get(key), getattr(scenario.backend, key)
+            if was is not None and was != now:
+                backend_changes.append(f"backend.{key}: {was!r} -> {now!r}")
+    except (OSError, ValueError, AttributeError):
+        pass
     for seed in scenario.seeds:
         sample = source / f"sample_{seed}"
         ck = sample / "checkpoint.h5"
@@ -189,7 +203,7 @@ def plan_branch(scenario, source, out) -> dict:
                 phase.min_steps = sip + int(round((phase.min_steps - sip) * ratio))
         record = {"run": str(source.resolve()), "time": t, "step": int(meta["step"]),
                   "stage": stage_idx + 1, "phase": phase.name if phase else None,
-                  "changes": changes}
+                  "changes": backend_changes + changes}
         new_meta = dict(meta)
         new_meta.update({"scenario_text": scenario.text, "stage": stage_idx,
                          "phase_index": phase_idx, "step_in_phase": sip,
@@ -224,25 +238,13 @@ def branch_run(scenario, source, out) -> str:
     docstring): its records, and per seed RUN's files and the rewritten checkpoint. Every
     check comes first (plan_branch), so a refused branch writes nothing. Returns one line per
     seed saying where it goes on from."""
-    from .runner import record_scenario, run_lock
-    out = pathlib.Path(out)
+    from .runner import record_scenario
+    out, source = pathlib.Path(out), pathlib.Path(source)
     plans = plan_branch(scenario, source, out)
-    for seed, (arrays, meta, files) in plans.items():
-        src = pathlib.Path(source) / f"sample_{seed}"
-        dst = out / f"sample_{seed}"
-        with run_lock(src):         # not while a run writes there
-            dst.mkdir(parents=True, exist_ok=True)
-            for path in files:
-                with io.atomic_path(dst / path.name) as tmp:
-                    shutil.copyfile(path, tmp)
-            states = dst / "states.h5"
-            if states.is_file():    # its scenario: the one its frames go on under
-                with io.atomic_path(states) as tmp:
-                    shutil.copyfile(states, tmp)
-                    with h5py.File(tmp, "a") as f:
-                        f.attrs["scenario"] = scenario.text
-                        f.attrs["branched_from"] = str(pathlib.Path(source).resolve())
-            io.save_checkpoint(dst / "checkpoint.h5", arrays, meta)
+    with contextlib.ExitStack() as held:        # not while a run writes there
+        for path in [source] + [source / f"sample_{seed}" for seed in plans]:
+            _read_lock(held, path / LOCK_FILE)
+        _write_branch(scenario, source, out, plans)
     record_scenario(scenario, out, resume=False)
     lines = []
     for seed, (_, meta, _) in plans.items():
@@ -252,3 +254,41 @@ def branch_run(scenario, source, out) -> str:
                      f"{', phase ' + rec['phase'] if rec['phase'] else ''}), "
                      f"{len(rec['changes'])} setting(s) changed")
     return "\n".join(lines)
+
+
+def _read_lock(held: contextlib.ExitStack, path: pathlib.Path) -> None:
+    """A shared lock on a run's lock file `path` (runner.run_lock), held by `held`: a run that
+    writes there holds it exclusively, so this refuses, naming it; while held, no run starts
+    there. A missing lock file (no run ever wrote there) is left missing: the source is only
+    read."""
+    try:
+        import fcntl
+        f = held.enter_context(open(path, encoding="utf-8"))
+    except (ImportError, OSError):
+        return
+    try:
+        fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = f.read().strip() or "a process that did not say which"
+        raise BranchError(f"--from {path.parent}: a tcd run writes into it now ({holder}); "
+                          "go on from it once it has stopped or finished") from None
+    except OSError:
+        return
+
+
+def _write_branch(scenario, source: pathlib.Path, out: pathlib.Path, plans: dict) -> None:
+    """Each sample's folder of the new run: RUN's files, then the rewritten checkpoint."""
+    for seed, (arrays, meta, files) in plans.items():
+        dst = out / f"sample_{seed}"
+        dst.mkdir(parents=True, exist_ok=True)
+        for path in files:
+            with io.atomic_path(dst / path.name) as tmp:
+                shutil.copyfile(path, tmp)
+        states = dst / "states.h5"
+        if states.is_file():        # its scenario: the one its frames go on under
+            with io.atomic_path(states) as tmp:
+                shutil.copyfile(states, tmp)
+                with h5py.File(tmp, "a") as f:
+                    f.attrs["scenario"] = scenario.text
+                    f.attrs["branched_from"] = str(source.resolve())
+        io.save_checkpoint(dst / "checkpoint.h5", arrays, meta)

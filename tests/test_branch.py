@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from conftest import run_tcd
-from tcd import io
-from test_runner import MICRO, _interrupt_after, _shear_only, load_here
+from tcd import backend, io
+from test_runner import MICRO, _interrupt_after, _shear_only, load_here, lock_held_elsewhere
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +120,10 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
     rel = os.path.relpath(sample, finer.parent)
     finer.write_text(text.replace("time_step = 5e-4", "time_step = 2.5e-4\ntolerance = 2e-5")
                      .replace(sample, rel))
+    # as if RUN had run in the other precision: the change is recorded
+    other = "f32" if backend.precision() == "f64" else "f64"
+    started = json.loads((cut / "run.json").read_text())
+    (cut / "run.json").write_text(json.dumps({**started, "precision": other}))
     assert run_tcd(["run", str(finer), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
     cut_series, got = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")[0], _series(tmp_path / "new")
     for key in got:                 # the source's steps, then the new ones
@@ -137,7 +141,8 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
     assert np.any(got["residual"][:n][~capped[:n]] > 2e-5)
     b = json.loads((tmp_path / "new" / "sample_3" / "summary.json").read_text())
     assert b["phases"][-1]["steps"] == b["stages"]["0:shear"]["steps"] == len(got["time"])
-    assert sorted(b["branched_from"][0]["changes"]) == [
+    assert b["branched_from"][0]["changes"] == [
+        f"backend.precision: {other!r} -> {backend.precision()!r}",
         "solver.time_step: 0.0005 -> 0.00025", "solver.tolerance: 0.0001 -> 2e-05",
         f"stage[1].sample: {sample!r} -> {rel!r}"]
 
@@ -181,3 +186,10 @@ def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, t
     assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "x"),
                     "--resume"]) != 0
     assert "--from starts a new run" in capsys.readouterr().err
+    # not from a run that a process writes into now
+    with lock_held_elsewhere(cut / "sample_3" / ".tcd.lock", "pid 4242 on elsewhere"):
+        assert run_tcd(["run", str(scenario), "--from", str(cut), "--out",
+                        str(tmp_path / "y")]) != 0
+    err = capsys.readouterr().err
+    assert "a tcd run writes into it now (" in err and "pid 4242 on elsewhere" in err, err
+    assert not (tmp_path / "y").exists()
