@@ -1397,10 +1397,10 @@ def figure_velocity(path, out, frames, *, panel_width=900, velocity: str = "mean
     if not loaded:
         raise ValueError("figure_velocity needs at least one frame")
     ring = driving_speed(loaded)
-    spans = [""] * len(loaded)
+    windows = [""] * len(loaded)       # over which interval each panel's mean was taken
     if velocity == "mean":
         for i, k in enumerate(frames):
-            loaded[i], spans[i] = mean_velocity(path, int(k) % frame_count(path), loaded[i])
+            loaded[i], windows[i] = mean_velocity(path, int(k) % frame_count(path), loaded[i])
     if ring > 0.0:
         mode, cmap, value_range = "vx", "viridis", VELOCITY_RANGE
         label = (f"{'mean ' if velocity == 'mean' else ''}$v_x$ / ring speed "
@@ -1435,7 +1435,7 @@ def figure_velocity(path, out, frames, *, panel_width=900, velocity: str = "mean
                  layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(loaded), squeeze=False)[0]
-    for ax, fr, k, vals, span in zip(axes, loaded, frames, values, spans):
+    for ax, fr, k, vals, window in zip(axes, loaded, frames, values, windows):
         colors = value_colors(vals, cmap, *value_range)
         image, _, _ = _render(fr["x"], fr["radius"], colors, width=width, height=height,
                               camera=cam, section=plane, walls=WallSet.from_frame(fr),
@@ -1466,7 +1466,8 @@ def figure_velocity(path, out, frames, *, panel_width=900, velocity: str = "mean
         else:
             title = f"frame {k}: {_frame_title(fr)}"
         if velocity == "mean":
-            title += f";\nmean velocity {span}" if span else ";\ninstant velocity (no frame next to it)"
+            title += (f";\nmean velocity {window}" if window else
+                      ";\ninstant velocity (no frame next to it)")
         ax.set_title(title, fontsize=9, loc="left")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("z (mm)")
@@ -1475,9 +1476,9 @@ def figure_velocity(path, out, frames, *, panel_width=900, velocity: str = "mean
                       ax=list(axes), shrink=0.9, extend="both" if mode == "vx" else "max")
     cb.set_label(label)
     if ring > 0.0:
-        what = ("mean velocity (displacement between two snapshots over their time apart)"
-                if velocity == "mean" else "velocity")
-        fig.suptitle(f"{what} of the grains cut by the vertical section through the axis; "
+        what = ("mean velocity (displacement from a snapshot to the next over their time "
+                "apart)" if velocity == "mean" else "velocity")
+        fig.suptitle(f"{what} of the grains cut by the vertical section through the axis;\n"
                      f"arrows ($v_x$, $v_z$) on one scale, capped at {ARROW_CAP:g} ring speeds",
                      fontsize=9)
     with atomic_output(out) as tmp:

@@ -593,7 +593,14 @@ def test_fig3_shows_each_grain_s_mean_velocity_between_two_snapshots(tmp_path, m
             f[f"frames/{k:06d}"].attrs["stage"] = "prepare"
     frame, span = render.mean_velocity(alone, 1, render.load_frame(alone, 1))
     assert span == "" and np.allclose(frame["v"], [[5e-3, 0, 0]])         # its own
+    import matplotlib.axes
+    titles = []
+    real_title = matplotlib.axes.Axes.set_title
+    monkeypatch.setattr(matplotlib.axes.Axes, "set_title",
+                        lambda ax, text, *a, **kw: titles.append(text) or real_title(ax, text, *a, **kw))
     render.figure_velocity(path, tmp_path / "fig3.png", [1, 2], panel_width=64)
+    assert titles[0].endswith("mean velocity to frame 2, ring 1.00 mm"), titles
+    assert titles[1].endswith("mean velocity from frame 1, ring 0.50 mm"), titles
     assert len(seen) == 2
     np.testing.assert_allclose(seen[0], [0.0, 1.0], atol=1e-9)           # v_x / ring
     np.testing.assert_allclose(seen[1], [0.0, 1.0], atol=1e-9)
