@@ -501,8 +501,8 @@ def _done_line(path: pathlib.Path) -> str:
 
 
 def _branch_note(result) -> str:
-    """"; went on from RUN at t = ... s (N changes)" for a sample of a `tcd run --from` run
-    (its result's `branched_from`, tcd.branch), else ""."""
+    """The note `; went on from RUN at t = ... s (N setting(s) changed)` for a sample of a
+    `tcd run --from` run (its result's `branched_from`, tcd.branch), else an empty string."""
     try:
         rec = result["branched_from"][-1]
         return (f"; went on from {rec['run']} at t = {float(rec['time']):.4f} s "
