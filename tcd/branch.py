@@ -240,12 +240,18 @@ def branch_run(scenario, source, out) -> str:
     seed saying where it goes on from."""
     from .runner import record_scenario
     out, source = pathlib.Path(out), pathlib.Path(source)
-    plans = plan_branch(scenario, source, out)
     with contextlib.ExitStack() as held:        # not while a run writes there
-        for path in [source] + [source / f"sample_{seed}" for seed in plans]:
+        for path in [source] + [source / f"sample_{seed}" for seed in scenario.seeds]:
             _read_lock(held, path / LOCK_FILE)
-        _write_branch(scenario, source, out, plans)
-    record_scenario(scenario, out, resume=False)
+        plans = plan_branch(scenario, source, out)
+        created = not out.exists()
+        try:
+            _write_branch(scenario, source, out, plans)
+            record_scenario(scenario, out, resume=False)
+        except BaseException:
+            if created:         # a failed copy (a full disk, Ctrl-C) leaves no half a run
+                shutil.rmtree(out, ignore_errors=True)
+            raise
     lines = []
     for seed, (_, meta, _) in plans.items():
         rec = meta["result"]["branched_from"][-1]
@@ -259,8 +265,8 @@ def branch_run(scenario, source, out) -> str:
 def _read_lock(held: contextlib.ExitStack, path: pathlib.Path) -> None:
     """A shared lock on a run's lock file `path` (runner.run_lock), held by `held`: a run that
     writes there holds it exclusively, so this refuses, naming it; while held, no run starts
-    there. A missing lock file (no run ever wrote there) is left missing: the source is only
-    read."""
+    there. A missing lock file (no run ever wrote there, or no such folder) is left missing:
+    the source is only read."""
     try:
         import fcntl
         f = held.enter_context(open(path, encoding="utf-8"))

@@ -193,3 +193,11 @@ def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, t
     err = capsys.readouterr().err
     assert "a tcd run writes into it now (" in err and "pid 4242 on elsewhere" in err, err
     assert not (tmp_path / "y").exists()
+    # a copy that fails half way (here the checkpoint's write) leaves no half a run behind
+    from tcd import branch
+    monkeypatch.setattr(branch.io, "save_checkpoint", lambda *a, **k: (_ for _ in ()).throw(
+        OSError(28, "No space left on device")))
+    before = _digests(cut)
+    assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "z")]) != 0
+    assert "No space left on device" in capsys.readouterr().err
+    assert not (tmp_path / "z").exists() and _digests(cut) == before
