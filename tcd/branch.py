@@ -204,6 +204,10 @@ def plan_branch(scenario, source, out) -> dict:
         record = {"run": str(source.resolve()), "time": t, "step": int(meta["step"]),
                   "stage": stage_idx + 1, "phase": phase.name if phase else None,
                   "changes": backend_changes + changes}
+        if phase is not None and phase.name == "shear" and "t0" in phase.info:
+            # how far the ring had moved (mm): where the curves of the two runs part
+            record["displacement_mm"] = ((t - float(phase.info["t0"]))
+                                         * old.stages[stage_idx].velocity_mm_per_min / 60.0)
         new_meta = dict(meta)
         new_meta.update({"scenario_text": scenario.text, "stage": stage_idx,
                          "phase_index": phase_idx, "step_in_phase": sip,

@@ -165,6 +165,20 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
             os.fspath(r["dir"])]) + " |")
     if not keys:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
+    went_on = []
+    for r in runs:
+        for smp in (r["summary"] or {}).get("samples", []) or []:
+            try:
+                rec = smp["branched_from"][-1]
+                moved = (f"the ring at {float(rec['displacement_mm']):.4g} mm, "
+                         if "displacement_mm" in rec else "")
+                went_on.append(f"{r['label']} (seed {smp.get('seed', '?')}) from {rec['run']} "
+                               f"({moved}t = {float(rec['time']):.4g} s)")
+            except (KeyError, IndexError, TypeError, ValueError):
+                continue
+    if went_on:
+        lines += ["", "Runs that went on from another run's state (`tcd run --from`; up to "
+                      "there their curves are that run's): " + "; ".join(went_on) + "."]
     if unfinished:
         lines += ["", f"No summary.json in {', '.join(unfinished)}: unfinished (or stopped) "
                       "runs, their curves as far as their series go."]

@@ -505,7 +505,9 @@ def _branch_note(result) -> str:
     `tcd run --from` run (its result's `branched_from`, tcd.branch), else an empty string."""
     try:
         rec = result["branched_from"][-1]
-        return (f"; went on from {rec['run']} at t = {float(rec['time']):.4f} s "
+        moved = (f", the ring at {float(rec['displacement_mm']):.4g} mm"
+                 if "displacement_mm" in rec else "")
+        return (f"; went on from {rec['run']} at t = {float(rec['time']):.4f} s{moved} "
                 f"({len(rec['changes'])} setting(s) changed)")
     except (KeyError, IndexError, TypeError, ValueError):
         return ""

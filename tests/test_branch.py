@@ -75,10 +75,19 @@ def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as
     assert record["run"] == str(cut.resolve())
     assert record["step"] == meta["step"] and record["time"] == meta["time"]
     assert record["changes"] == [] and record["phase"] == "shear"
-    from tcd import runner
-    assert ("sample_3: done: 80 grains" in runner.run_info(tmp_path / "new")
-            and f"went on from {cut.resolve()} at t = {meta['time']:.4f} s (0 setting(s) changed)"
-            in runner.run_info(tmp_path / "new")), runner.run_info(tmp_path / "new")
+    moved = (meta["time"] - meta["phase"]["info"]["t0"]) * 600.0 / 60.0       # mm
+    assert record["displacement_mm"] == pytest.approx(moved, rel=1e-12) and moved > 0
+    from tcd import compare, runner
+    info = runner.run_info(tmp_path / "new")
+    assert ("sample_3: done: 80 grains" in info
+            and f"went on from {cut.resolve()} at t = {meta['time']:.4f} s, the ring at "
+                f"{moved:.4g} mm (0 setting(s) changed)" in info), info
+    # `tcd compare` says where a run went on from another
+    compare.compare_runs([whole, tmp_path / "new"], tmp_path / "cmp", labels=["whole", "new"])
+    text = (tmp_path / "cmp" / "compare.md").read_text()
+    assert (f"went on from another run's state (`tcd run --from`; up to there their curves are "
+            f"that run's): new (seed 3) from {cut.resolve()} (the ring at {moved:.4g} mm, "
+            f"t = {meta['time']:.4g} s).") in text, text
     # the new run's frames: the source's up to the checkpoint, then its own, as uninterrupted
     assert io.frame_count(tmp_path / "new" / "sample_3" / "states.h5") == \
         io.frame_count(whole / "sample_3" / "states.h5")
