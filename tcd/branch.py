@@ -37,7 +37,6 @@ import re
 import shutil
 
 import h5py
-import numpy as np
 
 from . import io
 from .protocols import Phase
@@ -88,16 +87,16 @@ def _shear_end(stage, t0: float) -> float:
 
 def _series_of(path: pathlib.Path) -> tuple[dict, list]:
     """A finished stage's series file as checkpoint arrays ("series/<key>") and its column
-    order (the CSV's header, else by name)."""
-    found = io.read_series(path)
-    keys = sorted(found)
+    order: the CSV's header, else the order a resumed run restores (runner._restored_series)."""
+    from .runner import _restored_series
+    header = None
     csv = path.with_suffix(".csv")
     if csv.is_file():
         with open(csv, encoding="utf-8") as fh:
             header = [c.split(" [", 1)[0] for c in fh.readline().strip().split(",")]
-        if sorted(header) == keys:
-            keys = header
-    return {"series/" + k: np.asarray(found[k]) for k in keys}, keys
+    found = {"series/" + k: v for k, v in io.read_series(path).items()}
+    series = _restored_series(found, "series/", header)
+    return {"series/" + k: found["series/" + k] for k in series}, list(series)
 
 
 def plan_branch(scenario, source, out) -> dict:
@@ -126,6 +125,7 @@ def plan_branch(scenario, source, out) -> dict:
                 backend_changes.append(f"backend.{key}: {was!r} -> {now!r}")
     except (OSError, ValueError, AttributeError):
         pass
+    written = parse_scenario(scenario.text, scenario.source, resolve_samples=False)
     for seed in scenario.seeds:
         sample = source / f"sample_{seed}"
         ck = sample / "checkpoint.h5"
@@ -146,7 +146,6 @@ def plan_branch(scenario, source, out) -> dict:
             reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
             raise BranchError(f"{ck}: the scenario of that run cannot be read back ({reasons})") \
                 from None
-        written = parse_scenario(scenario.text, scenario.source, resolve_samples=False)
         changes = io.differences(_scenario_record(old), _scenario_record(written), base=1)
         if len(old.stages) != len(scenario.stages):
             raise BranchError(f"{ck}: that run has {len(old.stages)} stage(s), the scenario "
