@@ -40,7 +40,7 @@ import h5py
 
 from . import io
 from .protocols import Phase
-from .runner import LOCK_FILE
+from .runner import LOCK_FILE, shared_lock
 
 #: what may change in the stage under way, by its kind
 STAGE_UNDER_WAY = {"shear": ("tolerance", "max_sweeps", "smoothing_window_mm", "displacement_mm"),
@@ -258,9 +258,7 @@ def branch_run(scenario, source, out) -> str:
     lines = []
     for seed, (_, meta, _) in plans.items():
         rec = meta["result"]["branched_from"][-1]
-        lines.append(f"seed {seed}: from {rec['run']} at t = {rec['time']:g} s (step "
-                     f"{rec['step']}, stage {rec['stage']}"
-                     f"{', phase ' + rec['phase'] if rec['phase'] else ''}), "
+        lines.append(f"seed {seed}: {io.branch_origin(rec, step=True)}, "
                      f"{len(rec['changes'])} setting(s) changed")
     return "\n".join(lines)
 
@@ -271,18 +269,13 @@ def _read_lock(held: contextlib.ExitStack, path: pathlib.Path) -> None:
     there. A missing lock file (no run ever wrote there, or no such folder) is left missing:
     the source is only read."""
     try:
-        import fcntl
         f = held.enter_context(open(path, encoding="utf-8"))
-    except (ImportError, OSError):
-        return
-    try:
-        fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = f.read().strip() or "a process that did not say which"
-        raise BranchError(f"--from {path.parent}: a tcd run writes into it now ({holder}); "
-                          "go on from it once it has stopped or finished") from None
     except OSError:
         return
+    holder = shared_lock(f)
+    if holder:
+        raise BranchError(f"--from {path.parent}: a tcd run writes into it now ({holder}); "
+                          "go on from it once it has stopped or finished")
 
 
 def _write_branch(scenario, source: pathlib.Path, out: pathlib.Path, plans: dict) -> None:

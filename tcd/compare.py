@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import figures
+from . import figures, io
 
 #: scenario keys that never make two runs differ in physics (names, seeds, outputs)
 IGNORED_KEYS = figures.STUDY_FREE_KEYS
@@ -169,11 +169,8 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
     for r in runs:
         for smp in (r["summary"] or {}).get("samples", []) or []:
             try:
-                rec = smp["branched_from"][-1]
-                moved = (f"the ring at {float(rec['displacement_mm']):.4g} mm, "
-                         if "displacement_mm" in rec else "")
-                went_on.append(f"{r['label']} (seed {smp.get('seed', '?')}) from {rec['run']} "
-                               f"({moved}t = {float(rec['time']):.4g} s)")
+                went_on.append(f"{r['label']} (seed {smp.get('seed', '?')}) "
+                               + io.branch_origin(smp["branched_from"][-1]))
             except (KeyError, IndexError, TypeError, ValueError):
                 continue
     if went_on:

@@ -281,6 +281,22 @@ def shown_differences(changed: list, limit: int = 6) -> str:
     return "; ".join(changed[:limit]) + (f"; and {more} more" if more > 0 else "")
 
 
+
+def branch_origin(record: dict, *, step: bool = False) -> str:
+    """Where a sample of a `tcd run --from` run went on from, worded once for every place that
+    says it (`tcd run --from`'s report, `tcd info`, `tcd compare`): `record` is the last entry of
+    its summary's `branched_from` (tcd.branch), the text "from RUN at t = T s[ (step S, stage K,
+    phase P)][, the ring at D mm]". A record missing a key raises KeyError, one with a value
+    that is not a number TypeError or ValueError."""
+    text = f"from {record['run']} at t = {float(record['time']):.4f} s"
+    if step:
+        phase = record.get("phase")
+        text += (f" (step {int(record['step'])}, stage {record['stage']}"
+                 f"{', phase ' + str(phase) if phase else ''})")
+    if "displacement_mm" in record:
+        text += f", the ring at {float(record['displacement_mm']):.4g} mm"
+    return text
+
 # --- shared checks ---------------------------------------------------------------------------
 def created_time() -> str:
     """The files' `created` time (UTC): now, or SOURCE_DATE_EPOCH (seconds since 1970, the

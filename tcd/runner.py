@@ -468,13 +468,21 @@ def run_info(out) -> str:
 def _lock_holder(path: pathlib.Path) -> str:
     """Who holds the run lock at `path` ("" when no process does, or it cannot be told)."""
     try:
-        import fcntl
         with open(path, encoding="utf-8") as f:
-            try:
-                fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                return f.read().strip() or "a process that did not say which"
-            fcntl.flock(f, fcntl.LOCK_UN)
+            return shared_lock(f)       # closing the file lets a lock taken go
+    except OSError:
+        return ""
+
+
+def shared_lock(f) -> str:
+    """Take a shared lock on the open run-lock file `f` without waiting: "" once it is held (or
+    where locks cannot be taken), else who holds it exclusively, as that process wrote it
+    there: a run that writes into the folder (run_lock)."""
+    try:
+        import fcntl
+        fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return f.read().strip() or "a process that did not say which"
     except (ImportError, OSError):
         pass
     return ""
@@ -505,10 +513,7 @@ def _branch_note(result) -> str:
     `tcd run --from` run (its result's `branched_from`, tcd.branch), else an empty string."""
     try:
         rec = result["branched_from"][-1]
-        moved = (f", the ring at {float(rec['displacement_mm']):.4g} mm"
-                 if "displacement_mm" in rec else "")
-        return (f"; went on from {rec['run']} at t = {float(rec['time']):.4f} s{moved} "
-                f"({len(rec['changes'])} setting(s) changed)")
+        return f"; went on {io.branch_origin(rec)} ({len(rec['changes'])} setting(s) changed)"
     except (KeyError, IndexError, TypeError, ValueError):
         return ""
 

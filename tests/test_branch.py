@@ -55,13 +55,15 @@ def _series(run):
 
 
 def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as_it_was(
-        shear, tmp_path, monkeypatch):
+        shear, tmp_path, monkeypatch, capsys):
     scenario, whole = shear
     cut = tmp_path / "cut"
     meta = _interrupted(scenario, cut, monkeypatch)
     assert 0 < meta["step_in_phase"] < meta["phase"]["steps"]
     before = _digests(cut)
+    capsys.readouterr()
     assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
+    report = capsys.readouterr()
     assert _digests(cut) == before                          # the source is only read
     one, two = _series(whole), _series(tmp_path / "new")
     assert set(one) == set(two)
@@ -77,6 +79,10 @@ def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as
     assert record["changes"] == [] and record["phase"] == "shear"
     moved = (meta["time"] - meta["phase"]["info"]["t0"]) * 600.0 / 60.0       # mm
     assert record["displacement_mm"] == pytest.approx(moved, rel=1e-12) and moved > 0
+    # `tcd run --from` reports where each sample goes on from
+    assert (f"seed 3: from {cut.resolve()} at t = {meta['time']:.4f} s (step {meta['step']}, "
+            f"stage 1, phase shear), the ring at {moved:.4g} mm, 0 setting(s) changed"
+            in report.out + report.err), report
     from tcd import compare, runner
     info = runner.run_info(tmp_path / "new")
     assert ("sample_3: done: 80 grains" in info
@@ -86,8 +92,8 @@ def test_going_on_unchanged_gives_the_uninterrupted_run_and_leaves_the_source_as
     compare.compare_runs([whole, tmp_path / "new"], tmp_path / "cmp", labels=["whole", "new"])
     text = (tmp_path / "cmp" / "compare.md").read_text()
     assert (f"went on from another run's state (`tcd run --from`; up to there their curves are "
-            f"that run's): new (seed 3) from {cut.resolve()} (the ring at {moved:.4g} mm, "
-            f"t = {meta['time']:.4g} s).") in text, text
+            f"that run's): new (seed 3) from {cut.resolve()} at t = {meta['time']:.4f} s, "
+            f"the ring at {moved:.4g} mm.") in text, text
     # the new run's frames: the source's up to the checkpoint, then its own, as uninterrupted
     assert io.frame_count(tmp_path / "new" / "sample_3" / "states.h5") == \
         io.frame_count(whole / "sample_3" / "states.h5")
