@@ -173,6 +173,12 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
                                + io.branch_origin(smp["branched_from"][-1]))
             except (KeyError, IndexError, TypeError, ValueError):
                 continue
+    rising = [f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'] if s.peak_at_end)})"
+              for r in runs if any(s.peak_at_end for s in r["samples"])]
+    if rising:
+        lines += ["", "Curves still rising at their end (the peak within half a smoothing window "
+                      "of the last point: no failure seen, the peak a lower bound), by run "
+                      "(seeds): " + "; ".join(rising) + "."]
     if went_on:
         lines += ["", "Runs that went on from another run's state (`tcd run --from`; up to "
                       "there their curves are that run's): " + "; ".join(went_on) + "."]

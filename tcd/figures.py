@@ -167,6 +167,28 @@ class SampleCurves:
     def peak_time(self) -> float:
         return float(self.time[self.peak_index]) if self.time.size else math.nan
 
+    @property
+    def peak_at_end(self) -> bool:
+        """The peak lies within half a smoothing window of the series' last point (its
+        average reaches the end): the curve was not seen to fall from it, no failure
+        (:func:`tcd.observables.peak_at_end`)."""
+        return obs.peak_at_end(self.displacement, self.d_peak, self.window)
+
+
+def peak_at_end_note(samples: list[SampleCurves]) -> str:
+    """The sentence under Table 2 naming the samples whose curve still rose at its end
+    (their "peak" the last point, not a failure), or "" when every sample peaked before."""
+    ends = [s for s in samples if s.peak_at_end]
+    if not ends:
+        return ""
+    windows = sorted({f"{0.5 * s.window * 1e3:g}" for s in ends})
+    which = (f"sample {ends[0].seed}" if len(ends) == 1
+             else "samples " + ", ".join(str(s.seed) for s in ends))
+    return (f"In {len(ends)} of the {len(samples)} samples ({which}) the stress still rose at "
+            f"the end of the curve: its peak lies within half a smoothing window "
+            f"({' / '.join(windows)} mm) of the last point, so its τ and d are that end, not a "
+            "failure; a longer test would find the peak there or later, as high or higher.")
+
 
 def _sample_dirs(run_dir: Path, summary: dict | None) -> list[tuple[str, Path]]:
     """(seed, directory) for the summary's samples first, then any other sample_* folder."""
@@ -486,7 +508,8 @@ def figure_stress_displacement(samples: list[SampleCurves], out_png: Path, writt
             ax.plot(d_mm, sample.stress * 1e-6, color=color, lw=0.5, alpha=0.25, zorder=1)
             ax.plot(d_mm, sample.smoothed * 1e-6, color=color, lw=1.6, zorder=2,
                     label=f"sample {sample.seed}")
-            ax.plot(sample.d_peak * 1e3, sample.tau_peak * 1e-6, "o", ms=6, mfc="white",
+            ax.plot(sample.d_peak * 1e3, sample.tau_peak * 1e-6,
+                    ">" if sample.peak_at_end else "o", ms=6, mfc="white",
                     mec=color, mew=1.6, zorder=4)
             top = max(top, float(np.nanmax(sample.smoothed)) * 1e-6)
         d_exp, tau_exp = EXPERIMENT["d_peak_mm"], EXPERIMENT["tau_peak_MPa"]
@@ -499,6 +522,9 @@ def figure_stress_displacement(samples: list[SampleCurves], out_png: Path, writt
                     color="0.35", mfc="none", ms=7, mew=1.4, zorder=5,
                     label="paper simulations (LMGC90, mean)")
         ax.plot([], [], "o", ms=6, mfc="white", mec="0.3", mew=1.6, label="peak of each sample")
+        if any(s.peak_at_end for s in samples):
+            ax.plot([], [], ">", ms=6, mfc="white", mec="0.3", mew=1.6,
+                    label="end of a curve still rising\n(no failure by then)")
         bottom = min(0.0, min(float(np.nanmin(s.smoothed)) for s in samples) * 1e-6)
         ax.set_xlim(0.0, (max(DISPLACEMENT_END, d_end) if leutner else d_end) * 1e3)
         ax.set_ylim(bottom, 1.12 * top if top > 0 else None)
@@ -528,15 +554,17 @@ def _fmt_error(value: float) -> str:
     return f"{100.0 * value:+.1f} %" if math.isfinite(value) else "–"
 
 
-def table2_markdown(rows: list[dict], note: str = "") -> str:
+def table2_markdown(rows: list[dict], note: str = "", footnote: str = "") -> str:
     """Table 2 in Markdown; `note`: a run not compared with the experiments
-    (:func:`not_compared_note`), under the title, and no relative-error columns."""
+    (:func:`not_compared_note`), under the title, and no relative-error columns; `footnote`:
+    a paragraph under the table (:func:`peak_at_end_note`)."""
+    tail = ["", footnote] if footnote else []
     if note:
         lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
                  "of this run.", "", note, "", "| | τ [MPa] | d [mm] |", "|---|---|---|"]
         lines += [f"| {r['label']} | {_fmt(r['tau_MPa'], 3, r['tau_std_MPa'])} | "
                   f"{_fmt(r['d_mm'], 2, r['d_std_mm'])} |" for r in rows]
-        return "\n".join(lines) + "\n"
+        return "\n".join(lines + tail) + "\n"
     lines = ["Table 2. Average values of shear stress τ and peak displacement d at failure "
              "through the experiments and the simulations (relative error to the experiments).",
              "",
@@ -546,7 +574,7 @@ def table2_markdown(rows: list[dict], note: str = "") -> str:
         lines.append(f"| {r['label']} | {_fmt(r['tau_MPa'], 3, r['tau_std_MPa'])} | "
                      f"{_fmt(r['d_mm'], 2, r['d_std_mm'])} | {_fmt_error(r['tau_rel_error'])} | "
                      f"{_fmt_error(r['d_rel_error'])} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + tail) + "\n"
 
 
 def table2_csv(rows: list[dict]) -> str:
@@ -811,7 +839,8 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True,
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples),
                        paper_test)
     note = "" if paper_test else not_compared_note(summary)
-    _write_text(out_dir / "table2.md", table2_markdown(rows, note), written)
+    _write_text(out_dir / "table2.md", table2_markdown(rows, note, peak_at_end_note(samples)),
+                written)
     _write_text(out_dir / "table2.csv", table2_csv(rows), written)
     figure_table2(rows, out_dir / "table2.png", written, note)
     figure_bonds_broken(samples, summary, out_dir / "bonds_broken.png", written)

@@ -205,6 +205,17 @@ def peak_of(displacement, stress, window) -> tuple[float, float, int]:
     return float(top), float(displacement[index]), index
 
 
+def peak_at_end(displacement, d_peak, window) -> bool:
+    """Whether a curve's peak (:func:`peak_of`, at `d_peak`) lies within half a smoothing
+    `window` of its last point, so that the average the peak is (:func:`smooth`) reaches the
+    end of the curve: the stress was not seen to fall from it by the end of the series, and the
+    peak is the end of a curve that may still rise (no failure reached), a lower bound of what
+    a longer test would give. Same units for the three."""
+    d = np.asarray(displacement, dtype=float)
+    d = d[np.isfinite(d)]
+    return bool(d.size) and float(d.max()) - float(d_peak) < 0.5 * float(window)
+
+
 def as_number(value) -> float:
     """A summary entry as a float; None (JSON null) and junk become NaN."""
     try:

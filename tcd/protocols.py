@@ -521,6 +521,7 @@ class Shear:
             "kinetic_over_work_max": ke_max / work if work > 0 else float("nan"),
             "tau_peak_MPa": tau * 1e-6, "d_peak_mm": d_peak * 1e3, "residual_MPa": float(tail) * 1e-6,
             "peak_index": k, "smoothing_window_mm": c.smoothing_window_mm,
+            "peak_at_end": obs.peak_at_end(d, d_peak, c.smoothing_window_mm * 1e-3),
             "bonds_total": int(len(broken)), "bonds_broken": int(broken.sum()),
             "bonds_broken_tension": int(np.count_nonzero(state == 1)),
             "bonds_broken_shear": int(np.count_nonzero(state == 2)),

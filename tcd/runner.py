@@ -497,7 +497,9 @@ def _done_line(path: pathlib.Path) -> str:
         return f"done, but {path} cannot be read ({exc})"
     parts = [f"done: {res['particles']} grains" if "particles" in res else "done"]
     if isinstance(res.get("tau_peak_MPa"), (int, float)):
-        parts.append(f"peak {res['tau_peak_MPa']:.4g} MPa at {res.get('d_peak_mm', float('nan')):.3g} mm")
+        parts.append(f"peak {res['tau_peak_MPa']:.4g} MPa at {res.get('d_peak_mm', float('nan')):.3g} mm"
+                     + (" (the end of the test: still rising, no failure)"
+                        if res.get("peak_at_end") is True else ""))
     if isinstance(res.get("bonds_total"), int):
         parts.append(f"{res.get('bonds_broken', '?')} of {res['bonds_total']} bonds broken")
     if isinstance(res.get("packing_fraction"), (int, float)):
@@ -1067,9 +1069,10 @@ def _write_sample_summary(sample_dir: pathlib.Path, seed: int, result: dict) -> 
         if key.endswith("prepare"):
             flat.update({"particles": numbers["particles"], "packing_fraction": numbers["packing_fraction"]})
         if key.endswith("shear"):
-            flat.update({k: numbers[k] for k in ("tau_peak_MPa", "d_peak_mm", "residual_MPa", "bonds_total",
+            flat.update({k: numbers[k] for k in ("tau_peak_MPa", "d_peak_mm", "peak_at_end",
+                                                  "residual_MPa", "bonds_total",
                                                   "bonds_broken", "bonds_broken_tension", "bonds_broken_shear",
-                                                  "particles")})
+                                                  "particles") if k in numbers})
     io.write_json(sample_dir / "summary.json", flat)
     return flat
 

@@ -75,6 +75,21 @@ def test_peak_of_monotonic_curve_is_the_last_point():
     assert peak_of(x, np.minimum(x, 0.5), 0.1)[2] == 100
 
 
+def test_a_peak_within_one_window_of_the_end_is_the_end_of_a_rising_curve():
+    from tcd.observables import peak_at_end
+    d = np.linspace(0.0, 2.5e-3, 2501)
+    window = 1e-4
+    rising = 1.0 - np.exp(-d / 1e-3)
+    bump = np.exp(-0.5 * ((d - 2.0e-3) / 2e-4) ** 2)
+    assert peak_at_end(d, peak_of(d, rising, window)[1], window)
+    assert not peak_at_end(d, peak_of(d, bump, window)[1], window)
+    assert peak_at_end(d, 2.5e-3 - 0.49 * window, window)
+    assert not peak_at_end(d, 2.5e-3 - 0.51 * window, window)
+    # the last point is the largest displacement, whatever the order and NaN
+    assert peak_at_end(np.r_[d[::-1], np.nan], 2.46e-3, window)
+    assert not peak_at_end(np.array([np.nan]), 0.0, window)
+
+
 # --- Table 2 ---------------------------------------------------------------------------------
 def _summary(taus=(0.80, 0.86, 0.83), ds=(2.1, 2.3, 2.2)):
     samples = [{"seed": s, "tau_peak_MPa": t, "d_peak_mm": d, "bonds_total": 2000}
@@ -165,6 +180,7 @@ def test_make_figures_writes_the_paper_outputs(tmp_path):
     md = (run / "figures" / "table2.md").read_text()
     for text in ("0.898", "2.37", "0.837", "2.20", "0.830 ± 0.030", "-7.6 %", "-7.2 %"):
         assert text in md
+    assert "still rose" not in md                  # every sample peaked before its end
     csv_lines = (run / "figures" / "table2.csv").read_text().splitlines()
     assert len(csv_lines) == 4 and csv_lines[0].startswith("label,tau_MPa")
     # the same figures are the same bytes: the PDF carried its creation date (session 48)
@@ -500,3 +516,41 @@ def test_table2_of_another_test_than_the_paper_s_is_not_compared(tmp_path):
                                  np.ones(3), 1e-5, 1.0, 2e-4, 1, {})
     assert figures.is_paper_test(merged, [short]) is False
     assert figures.is_paper_test({**merged, "paper_test": True}, [short]) is True
+
+
+def test_curves_still_rising_at_their_end_are_named_under_table2_in_fig4_and_in_compare(
+        tmp_path, monkeypatch):
+    """A sample whose stress still rises at the end of the test has no failure: Table 2 says
+    which samples, Fig. 4 marks their last point apart from the peaks, `tcd compare` lists
+    them by run."""
+    run = tmp_path / "run"
+    for seed, (t, d) in {11: (0.80e6, 2.1e-3), 12: (0.90e6, 2.5e-3), 13: (0.83e6, 2.2e-3),
+                         14: (0.95e6, 2.485e-3), 15: (0.85e6, 2.46e-3)}.items():
+        _write_sample(run, seed, t, d)
+    shown = {}
+
+    def keep(fig, path, written):
+        if path.name.startswith("fig4"):
+            shown["legend"] = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+            shown["markers"] = [line.get_marker() for line in fig.axes[0].get_lines()]
+        written.append(path)
+
+    monkeypatch.setattr(figures, "_save", keep)
+    with pytest.warns(FigureWarning):
+        make_figures(run, tmp_path / "figs", render=False)
+    md = (tmp_path / "figs" / "table2.md").read_text()
+    # seed 12 rises to the end; seed 14 peaks 0.015 mm before it, within half the 0.05 mm
+    # window; seed 15 0.04 mm before it, outside
+    assert ("In 2 of the 5 samples (samples 12, 14) the stress still rose at the end of the "
+            "curve: its peak lies within half a smoothing window (0.025 mm) of the last point") in md
+    assert md.index("| tcd") < md.index("In 2 of the 5")          # under the table
+    assert "end of a curve still rising\n(no failure by then)" in shown["legend"]
+    assert shown["markers"].count(">") == 2 + 1 and shown["markers"].count("o") == 3 + 1
+    from tcd import compare
+    other = tmp_path / "other"
+    _write_sample(other, 11, 0.8e6, 2.1e-3)
+    compare.compare_runs([run, other], tmp_path / "cmp", labels=["a", "b"])
+    text = (tmp_path / "cmp" / "compare.md").read_text()
+    assert ("Curves still rising at their end (the peak within half a smoothing window of the "
+            "last point: no failure seen, the peak a lower bound), by run (seeds): a (12, 14).") \
+        in text, text

@@ -269,11 +269,22 @@ def test_tcd_info_of_a_run_directory_tells_each_samples_state(micro_run, tmp_pat
     assert text.startswith(f"{out}: tcd run of scenario 'micro' ({out / 'scenario.toml'}): "
                            "stages prepare, shear; seeds 3\n"), text
     assert f"backend: {backend.arch()} {backend.precision()}, tcd " in text, text
+    # whether the curve still rose at its end, from the series itself
+    series = io.read_series(out / "sample_3" / "shear_series.h5")
+    window = res["stages"]["1:shear"]["smoothing_window_mm"]
+    assert res["peak_at_end"] is bool(1e3 * series["displacement"].max() - res["d_peak_mm"]
+                                      < 0.5 * window)
+    rising = " (the end of the test: still rising, no failure)" if res["peak_at_end"] else ""
     assert (f"sample_3: done: {res['particles']} grains, peak {res['tau_peak_MPa']:.4g} MPa at "
-            f"{res['d_peak_mm']:.3g} mm, {res['bonds_broken']} of {res['bonds_total']} bonds "
+            f"{res['d_peak_mm']:.3g} mm{rising}, {res['bonds_broken']} of {res['bonds_total']} bonds "
             f"broken, packing fraction {res['packing_fraction']:.3f}, "
             f"{sum(res['wall_time_s'].values()):.0f} s of wall time\n") in text, text
     assert f"run summary: {out / 'summary.json'}" in text
+    # a sample whose stress still rose at the end of the test is told apart from a failure
+    ended = tmp_path / "ended.json"
+    ended.write_text(json.dumps({**res, "peak_at_end": True}))
+    assert (f"peak {res['tau_peak_MPa']:.4g} MPa at {res['d_peak_mm']:.3g} mm (the end of the "
+            "test: still rising, no failure), ") in runner._done_line(ended)
     import shutil
     copy = tmp_path / "copy"
     shutil.copytree(out, copy)
