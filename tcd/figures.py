@@ -181,13 +181,17 @@ def peak_at_end_note(samples: list[SampleCurves]) -> str:
     ends = [s for s in samples if s.peak_at_end]
     if not ends:
         return ""
-    windows = sorted({f"{0.5 * s.window * 1e3:g}" for s in ends})
-    which = (f"sample {ends[0].seed}" if len(ends) == 1
-             else "samples " + ", ".join(str(s.seed) for s in ends))
-    return (f"In {len(ends)} of the {len(samples)} samples ({which}) the stress still rose at "
-            f"the end of the curve: its peak lies within half a smoothing window "
-            f"({' / '.join(windows)} mm) of the last point, so its τ and d are that end, not a "
-            "failure; a longer test would find the peak there or later, as high or higher.")
+    half = " / ".join(sorted({f"{0.5 * s.window * 1e3:g}" for s in ends}))
+    if len(ends) == 1:
+        return (f"In 1 of the {len(samples)} samples (sample {ends[0].seed}) the stress still "
+                f"rose at the end of its curve: its peak lies within half a smoothing window "
+                f"({half} mm) of the last point, so its τ and d are that end, not a failure; a "
+                "longer test would find its peak there or later, as high or higher.")
+    return (f"In {len(ends)} of the {len(samples)} samples (samples "
+            f"{', '.join(str(s.seed) for s in ends)}) the stress still rose at the end of their "
+            f"curves: each peak lies within half a smoothing window ({half} mm) of its curve's "
+            "last point, so their τ and d are those ends, not failures; a longer test would "
+            "find each peak there or later, as high or higher.")
 
 
 def _sample_dirs(run_dir: Path, summary: dict | None) -> list[tuple[str, Path]]:
@@ -510,7 +514,7 @@ def figure_stress_displacement(samples: list[SampleCurves], out_png: Path, writt
                     label=f"sample {sample.seed}")
             ax.plot(sample.d_peak * 1e3, sample.tau_peak * 1e-6,
                     ">" if sample.peak_at_end else "o", ms=6, mfc="white",
-                    mec=color, mew=1.6, zorder=4)
+                    mec=color, mew=1.6, zorder=4, clip_on=False)
             top = max(top, float(np.nanmax(sample.smoothed)) * 1e-6)
         d_exp, tau_exp = EXPERIMENT["d_peak_mm"], EXPERIMENT["tau_peak_MPa"]
         if leutner:
@@ -591,10 +595,12 @@ def table2_csv(rows: list[dict]) -> str:
     return buffer.getvalue()
 
 
-def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = "") -> None:
+def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = "",
+                  footnote: str = "") -> None:
     """Table 2 as an image: a plain three-rule table (top, below the header, bottom). With a
     `note` (a run not compared with the experiments: :func:`not_compared_note`) the table has
-    no relative-error columns and the note, wrapped, stands under the title."""
+    no relative-error columns and the note, wrapped, stands under the title; a `footnote`
+    (:func:`peak_at_end_note`), wrapped, stands under the table."""
     import matplotlib
     compared = not note
     header = ["", "τ [MPa]", "d [mm]"] + (["rel. error τ", "rel. error d"] if compared else [])
@@ -609,6 +615,11 @@ def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = ""
         above, table_h = 0.42 + 0.14 * len(lines), 0.4 * (len(rows) + 1)
         height = above + table_h + 0.09
         axes, widths = (0.02, 0.09 / height, 0.96, table_h / height), [0.52, 0.24, 0.24]
+    foot = textwrap.wrap(footnote, 120) if footnote else []
+    foot_h = 0.14 * len(foot) + 0.12 if foot else 0.0          # inches added at the bottom
+    scale = height / (height + foot_h)                         # the figure above, squeezed
+    height += foot_h
+    axes = (axes[0], axes[1] * scale + foot_h / height, axes[2], axes[3] * scale)
     with matplotlib.rc_context(_RC):
         fig = Figure(figsize=(8.2, height), dpi=150)
         FigureCanvasAgg(fig)
@@ -629,15 +640,18 @@ def figure_table2(rows: list[dict], out_png: Path, written: list, note: str = ""
         for y, lw in ((1.0, 1.2), ((n - 1) / n, 0.7), (0.0, 1.2)):
             ax.plot([0, 1], [y, y], color="k", lw=lw, transform=ax.transAxes, clip_on=False)
         if compared:
-            fig.text(0.02, 0.96, "Table 2. Shear stress τ and displacement d at failure: "
-                     "experiments and simulations", ha="left", va="top", fontsize=10.5,
-                     weight="bold")
-            fig.text(0.02, 0.86, "relative error = (simulation − experiment) / experiment",
-                     ha="left", va="top", fontsize=8.5, color="0.3")
+            fig.text(0.02, 1.0 - 0.04 * scale, "Table 2. Shear stress τ and displacement d at "
+                     "failure: experiments and simulations", ha="left", va="top",
+                     fontsize=10.5, weight="bold")
+            fig.text(0.02, 1.0 - 0.14 * scale, "relative error = (simulation − experiment) / "
+                     "experiment", ha="left", va="top", fontsize=8.5, color="0.3")
         else:
             fig.text(0.02, 1.0 - 0.09 / height, "Table 2. Shear stress τ and displacement d at "
                      "failure: this run", ha="left", va="top", fontsize=10.5, weight="bold")
             fig.text(0.02, 1.0 - 0.33 / height, "\n".join(lines), ha="left", va="top",
+                     fontsize=8.0, color="0.3", linespacing=1.15)
+        if foot:
+            fig.text(0.02, (foot_h - 0.06) / height, "\n".join(foot), ha="left", va="top",
                      fontsize=8.0, color="0.3", linespacing=1.15)
         _save(fig, out_png, written)
 
@@ -839,10 +853,10 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True,
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples),
                        paper_test)
     note = "" if paper_test else not_compared_note(summary)
-    _write_text(out_dir / "table2.md", table2_markdown(rows, note, peak_at_end_note(samples)),
-                written)
+    footnote = peak_at_end_note(samples)
+    _write_text(out_dir / "table2.md", table2_markdown(rows, note, footnote), written)
     _write_text(out_dir / "table2.csv", table2_csv(rows), written)
-    figure_table2(rows, out_dir / "table2.png", written, note)
+    figure_table2(rows, out_dir / "table2.png", written, note, footnote)
     figure_bonds_broken(samples, summary, out_dir / "bonds_broken.png", written)
     if render:
         _render_figures(samples, out_dir, written, velocity)

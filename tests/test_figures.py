@@ -533,6 +533,8 @@ def test_curves_still_rising_at_their_end_are_named_under_table2_in_fig4_and_in_
         if path.name.startswith("fig4"):
             shown["legend"] = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
             shown["markers"] = [line.get_marker() for line in fig.axes[0].get_lines()]
+        if path.name == "table2.png":
+            shown["table2"] = [t.get_text().replace("\n", " ") for t in fig.texts]
         written.append(path)
 
     monkeypatch.setattr(figures, "_save", keep)
@@ -541,9 +543,17 @@ def test_curves_still_rising_at_their_end_are_named_under_table2_in_fig4_and_in_
     md = (tmp_path / "figs" / "table2.md").read_text()
     # seed 12 rises to the end; seed 14 peaks 0.015 mm before it, within half the 0.05 mm
     # window; seed 15 0.04 mm before it, outside
-    assert ("In 2 of the 5 samples (samples 12, 14) the stress still rose at the end of the "
-            "curve: its peak lies within half a smoothing window (0.025 mm) of the last point") in md
+    assert ("In 2 of the 5 samples (samples 12, 14) the stress still rose at the end of their "
+            "curves: each peak lies within half a smoothing window (0.025 mm) of its curve's last "
+            "point") in md
     assert md.index("| tcd") < md.index("In 2 of the 5")          # under the table
+    assert md.rstrip().splitlines()[-1] in shown["table2"]         # and under the image's
+    one = types.SimpleNamespace(seed=7, window=1e-4, peak_at_end=True)
+    assert figures.peak_at_end_note([one, types.SimpleNamespace(peak_at_end=False)]) == (
+        "In 1 of the 2 samples (sample 7) the stress still rose at the end of its curve: its "
+        "peak lies within half a smoothing window (0.05 mm) of the last point, so its τ and d "
+        "are that end, not a failure; a longer test would find its peak there or later, as high "
+        "or higher.")
     assert "end of a curve still rising\n(no failure by then)" in shown["legend"]
     assert shown["markers"].count(">") == 2 + 1 and shown["markers"].count("o") == 3 + 1
     from tcd import compare
