@@ -281,7 +281,6 @@ def shown_differences(changed: list, limit: int = 6) -> str:
     return "; ".join(changed[:limit]) + (f"; and {more} more" if more > 0 else "")
 
 
-
 def branch_origin(record: dict, *, step: bool = False) -> str:
     """Where a sample of a `tcd run --from` run went on from, worded once for every place that
     says it (`tcd run --from`'s report, `tcd info`, `tcd compare`): `record` is the last entry of
@@ -296,6 +295,7 @@ def branch_origin(record: dict, *, step: bool = False) -> str:
     if "displacement_mm" in record:
         text += f", the ring at {float(record['displacement_mm']):.4g} mm"
     return text
+
 
 # --- shared checks ---------------------------------------------------------------------------
 def created_time() -> str:

@@ -1069,10 +1069,11 @@ def _write_sample_summary(sample_dir: pathlib.Path, seed: int, result: dict) -> 
         if key.endswith("prepare"):
             flat.update({"particles": numbers["particles"], "packing_fraction": numbers["packing_fraction"]})
         if key.endswith("shear"):
-            flat.update({k: numbers[k] for k in ("tau_peak_MPa", "d_peak_mm", "peak_at_end",
-                                                  "residual_MPa", "bonds_total",
+            flat.update({k: numbers[k] for k in ("tau_peak_MPa", "d_peak_mm", "residual_MPa", "bonds_total",
                                                   "bonds_broken", "bonds_broken_tension", "bonds_broken_shear",
-                                                  "particles") if k in numbers})
+                                                  "particles")})
+            if "peak_at_end" in numbers:    # since session 55: not in a stage finished before
+                flat["peak_at_end"] = numbers["peak_at_end"]
     io.write_json(sample_dir / "summary.json", flat)
     return flat
 
