@@ -9,7 +9,8 @@ test: a summary whose `paper_test` is false gets a line saying how its test diff
 Several run directories (the parts of one study, `tcd run --seeds`) are merged as `tcd figures`
 merges them: each seed once, the same scenario, the mean and std over all their samples.
 
-Columns: seed, particles, peak stress and its displacement (smoothed curve, the run's window),
+Columns: seed, particles, peak stress and its displacement (smoothed curve, the run's window;
+"(end)" where the curve still rose at its end, `peak_at_end`, so the "peak" is no failure),
 residual stress at the end, bonds broken (tension + shear) of all bonds, the share of the broken
 bonds within a quarter ring height of the shear plane (next to that band's share of all bonds),
 the mean displacement of the upper and lower grains over the ring's travel, the largest kinetic
@@ -30,7 +31,9 @@ def rows_of(summary: dict) -> list[list[str]]:
         sh = _shear(sample)
         rows.append([
             str(sample["seed"]), str(sh["particles"]),
-            f"{sh['tau_peak_MPa']:.3f}", f"{sh['d_peak_mm']:.2f}", f"{sh['residual_MPa']:.3f}",
+            f"{sh['tau_peak_MPa']:.3f}",
+            f"{sh['d_peak_mm']:.2f}" + (" (end)" if sh.get("peak_at_end") is True else ""),
+            f"{sh['residual_MPa']:.3f}",
             f"{sh['bonds_broken']} ({sh['bonds_broken_tension']} + {sh['bonds_broken_shear']}) / {sh['bonds_total']}",
             f"{sh['broken_near_plane_fraction']:.2f} ({sh['bonds_near_plane_fraction']:.2f})",
             f"{sh['upper_mean_dx_over_ring']:.2f} / {sh['lower_mean_dx_over_ring']:.2f}",

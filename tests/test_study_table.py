@@ -41,6 +41,18 @@ def test_rows_and_summary_lines(table, tmp_path, capsys):
     assert "+5.8 %" in lines[7] and "-7.2 %" in lines[7]
 
 
+def test_a_peak_at_the_end_of_a_rising_curve_is_marked(table, tmp_path, capsys):
+    rising = _sample(2, 1.0, 2.5)
+    rising["stages"]["0:shear"]["peak_at_end"] = True
+    falling = _sample(1, 0.9, 2.3)
+    falling["stages"]["0:shear"]["peak_at_end"] = False
+    _write_summary(tmp_path, [falling, rising], 0.95, 2.4, 0.05, 0.1)
+    assert table.main([str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[2].startswith("| 1 | 5857 | 0.900 | 2.30 | 0.700 |")
+    assert lines[3].startswith("| 2 | 5857 | 1.000 | 2.50 (end) | 0.700 |")
+
+
 def test_one_sample_has_no_spread(table, tmp_path, capsys):
     _write_summary(tmp_path, [_sample(1, 0.9, 2.3)], 0.9, 2.3, 0.0, 0.0)
     assert table.main([str(tmp_path)]) == 0
