@@ -75,7 +75,7 @@ def test_peak_of_monotonic_curve_is_the_last_point():
     assert peak_of(x, np.minimum(x, 0.5), 0.1)[2] == 100
 
 
-def test_a_peak_within_one_window_of_the_end_is_the_end_of_a_rising_curve():
+def test_a_peak_within_half_a_window_of_the_end_is_the_end_of_a_rising_curve():
     from tcd.observables import peak_at_end
     d = np.linspace(0.0, 2.5e-3, 2501)
     window = 1e-4
