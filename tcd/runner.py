@@ -56,7 +56,8 @@ def frame_of(sim) -> dict:
 
 
 class Progress:
-    """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise. The first update
+    """A tqdm bar on a terminal, plain log lines (every 10 s) otherwise. The run updates it
+    every 100th step, and sooner when `due` says so (steps of seconds each). The first update
     gives the step the phase starts from (more than 0 after --resume): rates and the time left
     count only the steps made since, so a resumed run shows its own speed. A log line also
     gives the rate and the mean sweeps per step since the line before (the steps' sweeps
@@ -67,7 +68,7 @@ class Progress:
         self.tty = enabled and sys.stderr.isatty()
         self.bar = None
         self.first = None          # the step of the first update
-        self.t0 = self.last = time.perf_counter()
+        self.t0 = self.last = self.last_update = time.perf_counter()
         self.done = 0
         self.last_step = 0         # the step of the last log line
         self.sweeps, self.counted = 0, 0       # sweeps summed since then, over `counted` steps
@@ -77,10 +78,18 @@ class Progress:
         self.sweeps += sweeps
         self.counted += 1
 
+    def due(self) -> bool:
+        """Whether an update is due before the next 100th step: 10 s since the last one in a
+        log (1 s on a terminal). A bond cascade at a tight tolerance takes 10 s a step, and a
+        log updated only every 100th step would say nothing for a quarter of an hour."""
+        return (self.enabled and self.first is not None
+                and time.perf_counter() - self.last_update >= (1.0 if self.tty else 10.0))
+
     def update(self, step: int, sim_time: float, extra: str = "") -> None:
         if not self.enabled:
             return
         now = time.perf_counter()
+        self.last_update = now
         if self.first is None:
             self.first, self.done, self.t0, self.last = step, step, now, now
             self.last_step = step
@@ -680,7 +689,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                                         scenario_text=scenario.text, tcd_version=__version__)
                     next_snapshot = next_snapshot_after(batch.time, scenario.output.snapshot_every)
                 bar.count_sweeps(rec.sweeps)
-                if step_in_phase % 100 == 0:
+                if step_in_phase % 100 == 0 or bar.due():
                     bar.update(step_in_phase, batch.time, f"sweeps={rec.sweeps}")
                 last_ck = _checkpoint_if_due(interrupt, last_ck, scenario.output.checkpoint_every_s,
                                              checkpoint, bar)
@@ -952,7 +961,7 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                                     stage=stage.kind, scenario_text=scn.text, tcd_version=__version__)
                     next_snapshot = next_snapshot_after(sim.time, scn.output.snapshot_every)
                 bar.count_sweeps(rec.sweeps)
-                if step_in_phase % 100 == 0:
+                if step_in_phase % 100 == 0 or bar.due():
                     bar.update(step_in_phase, sim.time, f"sweeps={rec.sweeps}")
                 if stop:
                     break

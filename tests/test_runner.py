@@ -1453,3 +1453,48 @@ def test_a_prepared_sample_records_its_courses(micro_run):
     _, out = micro_run
     meta, _ = io.checkpoint_meta(out / "sample_3" / "prepared.h5")
     assert meta["courses"] == ["binder", "surface"]
+
+
+def test_progress_is_due_ten_seconds_after_its_last_update_in_a_log(monkeypatch):
+    """In a log (not a terminal) an update is due 10 s after the last one, whatever the step:
+    never before the first update, not at 9.9 s, at 10 s, and not again just after it."""
+    from tcd import runner
+    now = [0.0]
+    monkeypatch.setattr(runner.time, "perf_counter", lambda: now[0])
+    bar = runner.Progress(True, "seed 1 shear:shear", 15000, 2e-4)
+    assert not bar.tty
+    now[0] = 50.0
+    assert not bar.due()                   # no first update yet: the loop makes that one
+    bar.update(0, 0.0)
+    now[0] = 59.9
+    assert not bar.due()
+    now[0] = 60.0
+    assert bar.due()
+    bar.update(3, 0.0006)
+    assert not bar.due()
+    assert not runner.Progress(False, "off", 10, 2e-4).due()
+
+
+def test_slow_steps_update_the_progress_between_hundredth_steps(micro_run, tmp_path, monkeypatch):
+    """A run updates its progress every 100th step and whenever an update is due: with every
+    step slow (`due` always true) each step of the shear updates it, alone and in a batch."""
+    from tcd import runner
+    _, out = micro_run
+    steps = []
+    update = runner.Progress.update
+    monkeypatch.setattr(runner.Progress, "due", lambda self: True)
+    monkeypatch.setattr(runner.Progress, "update",
+                        lambda self, step, t, extra="": (steps.append((self.label, step)),
+                                                         update(self, step, t, extra)))
+    prepared = (out / "sample_3" / "prepared.h5").as_posix()
+    single = tmp_path / "single.toml"
+    single.write_text(_shear_only(prepared))
+    assert run_tcd(["run", str(single), "--out", str(tmp_path / "one")]) == 0
+    shear = [k for label, k in steps if label.startswith("seed 3 shear")]
+    assert len(shear) > 5 and shear == list(range(len(shear)))
+    steps.clear()
+    two = tmp_path / "two.toml"
+    two.write_text(_shear_only(prepared, "[3, 4]"))
+    assert run_tcd(["run", str(two), "--batch", "--out", str(tmp_path / "batch")]) == 0
+    batch = [k for label, k in steps if label.startswith("batch")]
+    assert len(batch) > 5 and batch == list(range(len(batch)))
