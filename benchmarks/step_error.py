@@ -13,7 +13,8 @@ differences between the two, relative to the reference:
 
 - impulse: all bond and contact impulses (one vector), 2-norm; bonds: the bonds' alone;
 - velocity: the grains' velocities, 2-norm (loose grains, whose velocity the converged step
-  sets freely, weigh in it);
+  sets freely, weigh in it), and per grain in mm/s: the median and 99th percentile of the
+  difference, next to the converged step's median speed;
 - wall force: the x force on the moving walls (the shear's upper ring and top plate).
 
     python benchmarks/step_error.py RUN/sample_1/checkpoint.h5 SCENARIO.toml
@@ -57,6 +58,14 @@ def _relative(a, b) -> float:
     return float(np.linalg.norm(a - b)) / scale if scale > 0 else float(np.linalg.norm(a - b))
 
 
+def _per_grain(v, v_ref) -> dict:
+    """Each grain's velocity difference and the converged step's speeds, in mm/s."""
+    dv = np.linalg.norm(v - v_ref, axis=1) * 1e3
+    return {"velocity_error_median_mm_s": float(np.median(dv)),
+            "velocity_error_p99_mm_s": float(np.quantile(dv, 0.99)),
+            "reference_speed_median_mm_s": float(np.median(np.linalg.norm(v_ref, axis=1)) * 1e3)}
+
+
 def step_error(sim, time_step: float, tolerance: float, *, settle_steps: int = 20,
                reference_tolerance: float = 1e-12, reference_sweeps: int = 100000,
                max_sweeps: int | None = None) -> dict:
@@ -80,6 +89,7 @@ def step_error(sim, time_step: float, tolerance: float, *, settle_steps: int = 2
                                        np.concatenate([b["bonds"], b["contacts"]])),
             "bond_impulse_error": _relative(a["bonds"], b["bonds"]),
             "velocity_error": _relative(a["v"], b["v"]),
+            **_per_grain(a["v"], b["v"]),
             "wall_force_error": (a["force"] - b["force"]) / b["force"] if b["force"] else 0.0,
             "wall_force_N": b["force"]}
 
@@ -105,8 +115,9 @@ def main(argv=None) -> list:
     rows = []
     if not a.json:
         print("| H (s) | sweeps | impulse error | bond impulse error | velocity error "
+              "| per grain, median / 99th percentile (mm/s; converged median speed) "
               "| wall force error | reference sweeps, residual |")
-        print("|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|")
     for h in (float(v) for v in a.time_steps.split(",")):
         sim = runner.restore_simulation(scn, arrays, meta)
         row = step_error(sim, h, a.tolerance, settle_steps=a.settle_steps,
@@ -119,6 +130,8 @@ def main(argv=None) -> list:
         else:
             print(f"| {h:g} | {row['sweeps']} | {row['impulse_error']:.2e} | "
                   f"{row['bond_impulse_error']:.2e} | {row['velocity_error']:.2e} | "
+                  f"{row['velocity_error_median_mm_s']:.3g} / {row['velocity_error_p99_mm_s']:.3g} "
+                  f"({row['reference_speed_median_mm_s']:.3g}) | "
                   f"{row['wall_force_error']:+.2e} | {row['reference_sweeps']}, "
                   f"{row['reference_residual']:.1e} |", flush=True)
     return rows

@@ -43,7 +43,13 @@ def test_a_loose_tolerance_leaves_the_step_off_its_solution(benchmark_script):
     assert loose["sweeps"] < loose["reference_sweeps"]
     assert loose["impulse_error"] > 10 * tight["impulse_error"] > 0
     assert loose["bond_impulse_error"] > tight["bond_impulse_error"]
-    for key in ("impulse_error", "bond_impulse_error", "velocity_error", "wall_force_error"):
+    # per grain (mm/s): the loose step's grains are off by more, the tails above the medians
+    assert loose["velocity_error_median_mm_s"] > tight["velocity_error_median_mm_s"] > 0
+    for row in (loose, tight):
+        assert row["velocity_error_p99_mm_s"] >= row["velocity_error_median_mm_s"]
+    assert loose["reference_speed_median_mm_s"] > 0
+    for key in ("impulse_error", "bond_impulse_error", "velocity_error", "wall_force_error",
+                "velocity_error_median_mm_s", "velocity_error_p99_mm_s"):
         assert same[key] == 0.0, key
     assert same["sweeps"] == same["reference_sweeps"]
     sim.close()
@@ -73,3 +79,9 @@ def test_main_reads_a_checkpoint_and_its_scenario(benchmark_script, tmp_path, ca
     assert [row["time_step"] for row in rows] == [2e-4, 1e-4]
     assert all(row["impulse_error"] > 0 for row in rows)
     assert capsys.readouterr().out.count('"impulse_error"') == 2
+    # without --json, a Markdown table: its header and one row per time step
+    script.main([str(tmp_path / "checkpoint.h5"), str(scn_path), "--time-steps", "2e-4",
+                 "--tolerance", "1e-2", "--settle-steps", "2", "--reference-sweeps", "20000"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and "median / 99th percentile" in lines[0]
+    assert all(line.count("|") == 9 for line in lines) and lines[2].startswith("| 0.0002 |")
