@@ -813,6 +813,18 @@ def checkpoint_meta(path) -> tuple[dict, str]:
         return meta, _attr_text(f, "created")
 
 
+def checkpoint_arrays(path, keys) -> dict:
+    """Those of the arrays `keys` that the checkpoint at `path` holds, without reading the
+    others (a run's series, `series/<column>`, from a checkpoint of several MB)."""
+    path = os.fspath(path)
+    with _open_tcd(path, FILE_CHECKPOINT) as f:
+        group = f.get("arrays")
+        if not isinstance(group, h5py.Group):
+            return {}
+        return {k: _read(group[k]) for k in keys
+                if k in group and isinstance(group[k], h5py.Dataset)}
+
+
 # --- summary ---------------------------------------------------------------------------------
 def info(path) -> str:
     """A readable multi-line summary of a tcd states, series or checkpoint file."""

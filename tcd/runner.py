@@ -33,6 +33,7 @@ import numpy as np
 
 from . import __version__, backend, io
 from . import observables as obs
+from .config import ShearStage
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
 from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
@@ -432,7 +433,13 @@ def run_info(out) -> str:
         doc = tomllib.loads(stored.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{stored}: cannot be read ({exc})") from None
-    stages = [st.get("kind", "?") for st in doc.get("stage", []) if isinstance(st, dict)]
+    stage_docs = [st for st in doc.get("stage", []) if isinstance(st, dict)]
+    stages = [st.get("kind", "?") for st in stage_docs]
+    # each shear stage's smoothing window (m), for the peak so far of a stopped shear
+    default_window = ShearStage.model_fields["smoothing_window_mm"].default
+    windows = {k: st.get("smoothing_window_mm", default_window) * 1e-3
+               for k, st in enumerate(stage_docs) if st.get("kind") == "shear"
+               and isinstance(st.get("smoothing_window_mm", default_window), (int, float))}
     seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
     seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
@@ -449,14 +456,14 @@ def run_info(out) -> str:
         lines.append(f"running now: a tcd process writes into it ({holder})")
     batch = out / "batch_checkpoint.h5"
     if batch.is_file():
-        lines.append("batch: " + _checkpoint_line(batch, stages, batched=True))
+        lines.append("batch: " + _checkpoint_line(batch, stages, batched=True, live=bool(holder)))
     for seed in seeds:
         d = out / f"sample_{seed}"
         summary, ck = d / "summary.json", d / "checkpoint.h5"
         if summary.is_file():
             text = _done_line(summary)
         elif ck.is_file():
-            text = _checkpoint_line(ck, stages)
+            text = _checkpoint_line(ck, stages, live=bool(holder), windows=windows)
         elif batch.is_file() and d.is_dir():
             text = "in the batch (above)"
         elif (d / "states.h5").is_file():
@@ -529,7 +536,25 @@ def _branch_note(result) -> str:
         return ""
 
 
-def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False) -> str:
+def _shear_so_far(path: pathlib.Path, window: float) -> str:
+    """'; the ring at D mm, S MPa, peak so far P MPa at Dp mm' from the series a shear's
+    checkpoint holds (its stress smoothed over `window` m, as the summary's peak), or ""."""
+    try:
+        series = io.checkpoint_arrays(path, ("series/displacement", "series/shear_stress"))
+        d, tau = series["series/displacement"], series["series/shear_stress"]
+        peak, at, _ = obs.peak_of(d, tau, window)
+        return (f"; the ring at {d[-1] * 1e3:.3f} mm, {tau[-1] / 1e6:.4g} MPa, peak so far "
+                f"{peak / 1e6:.4g} MPa at {at * 1e3:.3g} mm")
+    except (OSError, ValueError, KeyError, IndexError):
+        return ""
+
+
+def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
+                     live: bool = False, windows: dict | None = None) -> str:
+    """Where the checkpoint at `path` stands: "stopped in ...", or, while a process writes
+    into the run (`live`), "running, its last checkpoint in ..."; a shear stage's line adds
+    the ring's travel, the stress and the peak so far (`windows`: stage index -> smoothing
+    window, m)."""
     try:
         meta, created = io.checkpoint_meta(path)
         if batched:
@@ -540,7 +565,7 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False)
             phase = meta.get("phase")
             where = (f"stage {k + 1} of {len(stages)} ({stages[k]})" if 0 <= k < len(stages)
                      else f"stage {k + 1}")
-        text = f"stopped in {where}"
+        text = f"{'running, its last checkpoint in' if live else 'stopped in'} {where}"
         if isinstance(phase, dict):
             layer = (phase.get("info") or {}).get("layer")
             name = repr(phase.get("name", "?")) + (f" of layer {layer + 1}"
@@ -551,7 +576,10 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False)
                      f"{'at most ' if phase.get('settle') else ''}{phase.get('steps', '?')}")
         elif isinstance(meta.get("phase_index"), int):     # between two phases
             text += f", before its phase {meta['phase_index'] + 1}"
-        text += f", t = {float(meta['time']):.4f} s; checkpoint {path.name} written {created or '?'}"
+        text += f", t = {float(meta['time']):.4f} s"
+        if not batched and k in (windows or {}):
+            text += _shear_so_far(path, windows[k])
+        text += f"; checkpoint {path.name} written {created or '?'}"
         return text + ("" if batched else _branch_note(meta.get("result")))
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         return f"a checkpoint that cannot be read ({path}: {exc})"

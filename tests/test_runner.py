@@ -1498,3 +1498,35 @@ def test_slow_steps_update_the_progress_between_hundredth_steps(micro_run, tmp_p
     assert run_tcd(["run", str(two), "--batch", "--out", str(tmp_path / "batch")]) == 0
     batch = [k for label, k in steps if label.startswith("batch")]
     assert len(batch) > 5 and batch == list(range(len(batch)))
+
+
+def test_tcd_info_of_a_stopped_shear_gives_its_travel_stress_and_peak_so_far(micro_run, tmp_path,
+                                                                             monkeypatch):
+    """`tcd info RUN_DIR` of a shear stopped mid-way: the ring's travel, the stress and the peak
+    so far (smoothed as the summary's), from the checkpoint's series; "running" while a
+    process writes into the run."""
+    from tcd import runner
+    _, out = micro_run
+    single = tmp_path / "single.toml"
+    single.write_text(_shear_only((out / "sample_3" / "prepared.h5").as_posix()))
+    monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(25))
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_scenario(load_here(single), tmp_path / "cut", progress=False)
+    ck = tmp_path / "cut" / "sample_3" / "checkpoint.h5"
+    arrays, meta = io.load_checkpoint(ck)
+    d, tau = arrays["series/displacement"], arrays["series/shear_stress"]
+    assert len(d) > 10 and meta["step_in_phase"] < meta["phase"]["steps"]
+    from tcd import observables as obs
+    from tcd.config import parse_scenario
+    window = parse_scenario(single.read_text(), str(single)).stages[0].smoothing_window_mm * 1e-3
+    peak, at, _ = obs.peak_of(d, tau, window)
+    so_far = (f"t = {meta['time']:.4f} s; the ring at {d[-1] * 1e3:.3f} mm, {tau[-1] / 1e6:.4g} "
+              f"MPa, peak so far {peak / 1e6:.4g} MPa at {at * 1e3:.3g} mm; checkpoint "
+              "checkpoint.h5 written 20")
+    text = runner.run_info(tmp_path / "cut")
+    assert "sample_3: stopped in stage 1 of 1 (shear), phase 1 ('shear') at step " in text, text
+    assert so_far in text, text
+    with runner.run_lock(tmp_path / "cut"):
+        text = runner.run_info(tmp_path / "cut")
+    assert "sample_3: running, its last checkpoint in stage 1 of 1 (shear), " in text, text
+    assert so_far in text, text
