@@ -465,7 +465,8 @@ def run_info(out) -> str:
         elif ck.is_file():
             text = _checkpoint_line(ck, stages, live=bool(holder), windows=windows)
         elif batch.is_file() and d.is_dir():
-            text = "in the batch (above)"
+            text = "in the batch (above)" + (_shear_so_far(batch, windows[0], f"series/{seed}/")
+                                             if 0 in windows else "")
         elif (d / "states.h5").is_file():
             text = "started, no checkpoint yet"
         else:
@@ -536,12 +537,14 @@ def _branch_note(result) -> str:
         return ""
 
 
-def _shear_so_far(path: pathlib.Path, window: float) -> str:
+def _shear_so_far(path: pathlib.Path, window: float, prefix: str = "series/") -> str:
     """'; the ring at D mm, S MPa, peak so far P MPa at Dp mm' from the series a shear's
-    checkpoint holds (its stress smoothed over `window` m, as the summary's peak), or ""."""
+    checkpoint holds under `prefix` (a batch's: series/<seed>/), its stress smoothed over
+    `window` m as the summary's peak; "" when it holds none."""
     try:
-        series = io.checkpoint_arrays(path, ("series/displacement", "series/shear_stress"))
-        d, tau = series["series/displacement"], series["series/shear_stress"]
+        keys = (prefix + "displacement", prefix + "shear_stress")
+        series = io.checkpoint_arrays(path, keys)
+        d, tau = series[keys[0]], series[keys[1]]
         peak, at, _ = obs.peak_of(d, tau, window)
         return (f"; the ring at {d[-1] * 1e3:.3f} mm, {tau[-1] / 1e6:.4g} MPa, peak so far "
                 f"{peak / 1e6:.4g} MPa at {at * 1e3:.3g} mm")

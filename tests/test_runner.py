@@ -16,6 +16,7 @@ import pytest
 
 from conftest import run_tcd
 from tcd import backend, io
+from tcd import observables as obs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -585,7 +586,15 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     info = runner.run_info(tmp_path / "cut")            # `tcd info RUN_DIR`
     assert (f"batch: stopped in the shear of seeds 3, 4, phase {meta['phases'][0]['name']!r} at "
             f"step {meta['step_in_phase']} of {meta['phases'][0]['steps']}, t = ") in info, info
-    assert "sample_3: in the batch (above)\nsample_4: in the batch (above)" in info, info
+    arrays, _ = io.load_checkpoint(tmp_path / "cut" / "batch_checkpoint.h5")
+    window = load_here(pair).stages[0].smoothing_window_mm * 1e-3
+    for seed in (3, 4):     # each sample's travel, stress and peak so far, from its series
+        d = arrays[f"series/{seed}/displacement"]
+        tau = arrays[f"series/{seed}/shear_stress"]
+        peak, at, _ = obs.peak_of(d, tau, window)
+        assert (f"sample_{seed}: in the batch (above); the ring at {d[-1] * 1e3:.3f} mm, "
+                f"{tau[-1] / 1e6:.4g} MPa, peak so far {peak / 1e6:.4g} MPa at {at * 1e3:.3g} "
+                "mm\n") in info, info
     monkeypatch.undo()
     assert run_tcd(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
     for seed in (3, 4):
@@ -1516,7 +1525,6 @@ def test_tcd_info_of_a_stopped_shear_gives_its_travel_stress_and_peak_so_far(mic
     arrays, meta = io.load_checkpoint(ck)
     d, tau = arrays["series/displacement"], arrays["series/shear_stress"]
     assert len(d) > 10 and meta["step_in_phase"] < meta["phase"]["steps"]
-    from tcd import observables as obs
     from tcd.config import parse_scenario
     window = parse_scenario(single.read_text(), str(single)).stages[0].smoothing_window_mm * 1e-3
     peak, at, _ = obs.peak_of(d, tau, window)
