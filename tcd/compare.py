@@ -131,7 +131,7 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
     figures.refuse_file(out_dir)
     runs = []
     for label, run_dir in zip(labels, run_dirs):
-        summary, samples = figures.load_run(run_dir)
+        summary, samples = figures.load_run(run_dir, stopped=True)
         runs.append({"label": label, "dir": run_dir, "summary": summary, "samples": samples,
                      "scenario": figures._scenario_of(run_dir), **run_numbers(samples)})
     keys = differing_settings([r["scenario"] for r in runs])
@@ -167,18 +167,27 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
     went_on = []
     for r in runs:
-        for smp in (r["summary"] or {}).get("samples", []) or []:
+        records = [(smp.get("seed", "?"), (smp.get("branched_from") or [None])[-1])
+                   for smp in (r["summary"] or {}).get("samples", []) or []
+                   if isinstance(smp, dict) and isinstance(smp.get("branched_from"), list)]
+        records += [(s.seed, s.branched_from) for s in r["samples"] if s.stopped]
+        for seed, record in records:
             try:
-                went_on.append(f"{r['label']} (seed {smp.get('seed', '?')}) "
-                               + io.branch_origin(smp["branched_from"][-1]))
+                went_on.append(f"{r['label']} (seed {seed}) " + io.branch_origin(record))
             except (KeyError, IndexError, TypeError, ValueError):
                 continue
+    stopped = [f"{r['label']} (seed {s.seed} at {float(s.displacement.max()) * 1e3:.3f} mm)"
+               for r in runs for s in r["samples"] if s.stopped]
     rising = [f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'] if s.peak_at_end)})"
               for r in runs if any(s.peak_at_end for s in r["samples"])]
     if rising:
         lines += ["", "Curves still rising at their end (the peak within half a smoothing window "
                       "of the last point: no failure seen, the peak a lower bound), by run "
                       "(seeds): " + "; ".join(rising) + "."]
+    if stopped:
+        lines += ["", "Shears stopped before the end of their test (no series file: their curves "
+                      "and peaks so far, from the checkpoint a `--resume` continues from; a "
+                      "higher peak may come later), by run: " + "; ".join(stopped) + "."]
     if went_on:
         lines += ["", "Runs that went on from another run's state (`tcd run --from`; up to "
                       "there their curves are that run's): " + "; ".join(went_on) + "."]
@@ -213,8 +222,10 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
                         alpha=0.35, zorder=1)
             d, tau = mean_curve(r["samples"])
             shown = "; ".join(f"{k.split('.')[-1]} {_short(r['settings'][k])}" for k in keys[:3])
+            ends = [f"stopped at {float(s.displacement.max()) * 1e3:.2f} mm"
+                    for s in r["samples"] if s.stopped]
             label = (f"{r['label']} ({r['n_samples']} sample{'s' if r['n_samples'] != 1 else ''}"
-                     f"{': ' + shown if shown else ''})")
+                     f"{': ' + shown if shown else ''}{'; ' + ', '.join(ends) if ends else ''})")
             # a long label (a file path, many settings) would squeeze the axes to nothing
             ax.plot(d * 1e3, tau * 1e-6, color=color, lw=2.0, zorder=2,
                     label="\n".join(textwrap.wrap(label, 90)))

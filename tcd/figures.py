@@ -162,6 +162,10 @@ class SampleCurves:
     d_peak: float               # m
     peak_index: int
     series: dict                # every dataset of the series file
+    # a shear stopped before its end (`load_stopped_sample`: its series so far, from its
+    # checkpoint), and the run it went on from (`tcd run --from`), as its checkpoint has it
+    stopped: bool = False
+    branched_from: dict | None = None
 
     @property
     def peak_time(self) -> float:
@@ -229,8 +233,40 @@ def _series_attrs(path: Path) -> dict:
 def load_sample(seed: str, directory: Path) -> SampleCurves:
     """Read ``directory/shear_series.h5``; raise FileNotFoundError/ValueError if unusable."""
     path = directory / SERIES_NAME
-    series = io.read_series(path)
-    attrs = _series_attrs(path)
+    return _curves(seed, directory, io.read_series(path), _series_attrs(path), path)
+
+
+def load_stopped_sample(seed: str, directory: Path) -> SampleCurves:
+    """A shear stopped before its end (interrupted, or still running): its series so far,
+    from ``directory/checkpoint.h5`` (the one a `--resume` continues from), smoothed over its
+    scenario's window; `stopped` is set. Raises FileNotFoundError/ValueError when there is no
+    such checkpoint, or it was written outside a shear stage."""
+    import tomllib
+    path = directory / "checkpoint.h5"
+    meta, _ = io.checkpoint_meta(path)
+    try:
+        doc = tomllib.loads(meta["scenario_text"])
+        stage = [st for st in doc.get("stage", []) if isinstance(st, dict)][meta["stage"]]
+    except (KeyError, IndexError, TypeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: its stage cannot be read ({exc!r})") from None
+    if stage.get("kind") != "shear":
+        raise ValueError(f"{path}: written in a {stage.get('kind')!r} stage, not a shear")
+    keys = meta.get("series_keys")
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        keys = ["time", "displacement", "shear_stress"]
+    series = io.checkpoint_arrays(path, ["series/" + k for k in keys])
+    series = {k[len("series/"):]: v for k, v in series.items()}
+    window = obs.as_number(stage.get("smoothing_window_mm", DEFAULT_SMOOTHING_WINDOW * 1e3))
+    curves = _curves(seed, directory, series, {"smoothing_window": window * 1e-3}, path)
+    branch = (meta.get("result") or {}).get("branched_from")
+    return dataclasses.replace(curves, stopped=True, branched_from=(
+        branch[-1] if isinstance(branch, list) and branch and isinstance(branch[-1], dict)
+        else None))
+
+
+def _curves(seed: str, directory: Path, series: dict, attrs: dict, path: Path) -> SampleCurves:
+    """SampleCurves of a shear's `series` (read from `path`) and its file's `attrs` (the
+    smoothing window, and the runner's peak where it wrote one)."""
     for key in ("displacement", "shear_stress"):
         if key not in series:
             raise ValueError(f"{path}: series without {key!r}")
@@ -260,9 +296,12 @@ def load_sample(seed: str, directory: Path) -> SampleCurves:
                         tau_peak, d_peak, index, series)
 
 
-def load_run(run_dir, skipped: list | None = None) -> tuple[dict | None, list[SampleCurves]]:
+def load_run(run_dir, skipped: list | None = None, *,
+             stopped: bool = False) -> tuple[dict | None, list[SampleCurves]]:
     """(summary or None, usable samples); unusable samples are skipped with a warning, or,
     given a list `skipped`, appended to it as (seed, reason) for the caller to report.
+    `stopped`: a sample without its series file but with a shear's checkpoint is read as far
+    as it went (:func:`load_stopped_sample`; `tcd compare`, not a study's Table 2).
 
     Raises FileNotFoundError if run_dir is not a directory, ValueError if no sample is usable.
     """
@@ -284,7 +323,10 @@ def load_run(run_dir, skipped: list | None = None) -> tuple[dict | None, list[Sa
     samples = []
     for seed, directory in _sample_dirs(run_dir, summary):
         try:
-            samples.append(load_sample(seed, directory))
+            if stopped and not (directory / SERIES_NAME).exists():
+                samples.append(load_stopped_sample(seed, directory))
+            else:
+                samples.append(load_sample(seed, directory))
         except (OSError, ValueError, KeyError) as exc:
             if skipped is None:
                 warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)

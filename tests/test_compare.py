@@ -133,3 +133,61 @@ def test_long_labels_and_settings_do_not_squeeze_the_plot_away(tmp_path):
         warnings.simplefilter("error")
         compare.compare_runs([a, b], tmp_path / "o", labels=["x" * 200, "y"])
     assert "stage[1].sample" in (tmp_path / "o" / "compare.md").read_text()
+
+
+def _stopped_checkpoint(run, seed, stage, window_mm=0.2, rows=300):
+    """A run directory whose sample has no series file, only a checkpoint written in stage
+    `stage` of a prepare-then-shear scenario, holding a shear series that rises to 0.8 MPa at
+    1.5 mm and falls after (its run went on from another, `branched_from`)."""
+    from tcd import io
+    d = np.linspace(0.0, 2.0e-3, rows)
+    tau = 0.8e6 * np.exp(-((d - 1.5e-3) / 0.8e-3) ** 2)
+    text = SCENARIO.format(name="stopped", seeds=[seed], yield_=1.7, friction=0.3)
+    text = text.replace("[[stage]]\nkind = \"shear\"",
+                        "[[stage]]\nkind = \"prepare\"\n\n[[stage]]\nkind = \"shear\""
+                        f"\nsmoothing_window_mm = {window_mm}")
+    (run / f"sample_{seed}").mkdir(parents=True)
+    (run / "scenario.toml").write_text(text)
+    origin = {"run": "/runs/base", "time": 4.59, "displacement_mm": 1.0, "changes": ["x"]}
+    io.save_checkpoint(run / f"sample_{seed}" / "checkpoint.h5",
+                       {"series/time": d / 1e-3, "series/displacement": d,
+                        "series/shear_stress": tau},
+                       {"stage": stage, "scenario_text": text,
+                        "series_keys": ["time", "displacement", "shear_stress"],
+                        "result": {"branched_from": [origin]}})
+    return d, tau
+
+
+def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
+    """A shear stopped mid-way has no series file: `tcd compare` reads its series from its
+    checkpoint (smoothed over its own stage's window), says it stopped and where it went on
+    from; `tcd figures`' reading (a study's Table 2) still leaves it out; a checkpoint of a
+    preparation is not a curve."""
+    from tcd import figures, io, observables as obs
+    done = _run(tmp_path, "done", [(1, 0.85e6, 2.2e-3)])
+    stopped = tmp_path / "stopped"
+    d, tau = _stopped_checkpoint(stopped, 4, stage=1)
+    out = tmp_path / "cmp"
+    compare.compare_runs([done, stopped], out, labels=["done", "cut"])
+    md = (out / "compare.md").read_text()
+    assert ("Shears stopped before the end of their test (no series file: their curves and peaks "
+            "so far, from the checkpoint a `--resume` continues from; a higher peak may come "
+            "later), by run: cut (seed 4 at 2.000 mm).") in md, md
+    assert "cut (seed 4) from /runs/base" in md, md
+    peak, at, _ = obs.peak_of(d, tau, 2e-4)
+    assert peak == pytest.approx(0.8e6, rel=0.01) and at == pytest.approx(1.5e-3, abs=2e-5)
+    row = dict(zip(*[line.split(",") for line in
+                     (out / "compare.csv").read_text().splitlines()[::2]]))
+    assert float(row["tau_peak_MPa"]) == pytest.approx(peak * 1e-6, rel=1e-5)
+    assert float(row["d_peak_mm"]) == pytest.approx(at * 1e3, rel=1e-5)
+    (curves,) = figures.load_run(stopped, stopped=True)[1]
+    assert curves.stopped and curves.window == pytest.approx(2e-4)
+    assert curves.branched_from["run"] == "/runs/base"
+    with pytest.raises(ValueError, match="no usable sample"):
+        figures.load_run(stopped, [])
+    # written while the sample was prepared: no shear curve to draw
+    prep = tmp_path / "prep"
+    _stopped_checkpoint(prep, 5, stage=0)
+    with pytest.raises(ValueError, match=r"checkpoint.h5: written in a 'prepare' stage, not a shear"):
+        figures.load_stopped_sample("5", prep / "sample_5")
+    assert io.checkpoint_arrays(prep / "sample_5" / "checkpoint.h5", ["series/nothing"]) == {}
