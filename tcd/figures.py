@@ -246,7 +246,10 @@ def load_stopped_sample(seed: str, directory: Path) -> SampleCurves:
     meta, _ = io.checkpoint_meta(path)
     try:
         doc = tomllib.loads(meta["scenario_text"])
-        stage = [st for st in doc.get("stage", []) if isinstance(st, dict)][meta["stage"]]
+        k = meta["stage"]
+        if not isinstance(k, int) or isinstance(k, bool) or k < 0:
+            raise TypeError(f"stage {k!r}")
+        stage = [st for st in doc.get("stage", []) if isinstance(st, dict)][k]
     except (KeyError, IndexError, TypeError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{path}: its stage cannot be read ({exc!r})") from None
     if stage.get("kind") != "shear":
