@@ -191,3 +191,8 @@ def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
     with pytest.raises(ValueError, match=r"checkpoint.h5: written in a 'prepare' stage, not a shear"):
         figures.load_stopped_sample("5", prep / "sample_5")
     assert io.checkpoint_arrays(prep / "sample_5" / "checkpoint.h5", ["series/nothing"]) == {}
+    # a stage index that is not one (a negative one would read the last stage)
+    odd = tmp_path / "odd"
+    _stopped_checkpoint(odd, 6, stage=-1)
+    with pytest.raises(ValueError, match=r"checkpoint.h5: its stage cannot be read"):
+        figures.load_stopped_sample("6", odd / "sample_6")
