@@ -656,3 +656,19 @@ def test_the_bounds_of_doubt():
     assert parse_scenario(MINIMAL + edge).doubts() == []
     s = parse_scenario(MINIMAL.replace('kind = "shear"', 'kind = "shear"\nwall_friction = 2.5'))
     assert [k for k, _ in s.doubts()] == ["stage[2].wall_friction"]
+
+
+def test_the_tolerance_study_is_the_study_at_a_tenth_of_its_tolerance():
+    """scenarios/leutner_shear_tol1e-6.toml is leutner_shear.toml but for its name,
+    description, tolerance (1e-6 against 1e-5) and sweep cap: a change to the study's
+    calibrated settings must reach both files."""
+    study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml").model_dump()
+    tight = load_scenario(ROOT / "scenarios" / "leutner_shear_tol1e-6.toml").model_dump()
+    assert (tight["solver"]["tolerance"], study["solver"]["tolerance"]) == (1e-6, 1e-5)
+    assert tight["solver"]["max_sweeps"] == 200000
+    for d in (study, tight):
+        for key in ("name", "description", "source", "text"):
+            d.pop(key)
+        d["solver"].pop("tolerance")
+        d["solver"].pop("max_sweeps")
+    assert tight == study
