@@ -160,7 +160,8 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
             r["label"], *(r["settings"][k] for k in keys), str(r["n_samples"]),
             figures._fmt(r["tau_peak_MPa"], 3, r["tau_peak_std"]),
             figures._fmt(r["d_peak_mm"], 2, r["d_peak_std"]),
-            figures._fmt(r["tau_end_MPa"], 3, r["tau_end_std"]),
+            figures._fmt(r["tau_end_MPa"], 3, r["tau_end_std"])
+            + (" (stopped before the end)" if any(smp.stopped for smp in r["samples"]) else ""),
             f"{100 * share:.1f} %" if math.isfinite(share) else "–",
             os.fspath(r["dir"])]) + " |")
     if not keys:

@@ -174,6 +174,8 @@ def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
             "so far, from the checkpoint a `--resume` continues from; a higher peak may come "
             "later), by run: cut (seed 4 at 2.000 mm).") in md, md
     assert "cut (seed 4) from /runs/base" in md, md
+    (row_cut,) = [line for line in md.splitlines() if line.startswith("| cut |")]
+    assert " (stopped before the end) | " in row_cut and "(stopped" not in md.split("| cut |")[0]
     peak, at, _ = obs.peak_of(d, tau, 2e-4)
     assert peak == pytest.approx(0.8e6, rel=0.01) and at == pytest.approx(1.5e-3, abs=2e-5)
     row = dict(zip(*[line.split(",") for line in
