@@ -567,17 +567,23 @@ def test_gpu_study_is_the_study_on_the_resident_schedule():
     """scenarios/leutner_shear_gpu.toml is leutner_shear.toml but for its name, description,
     schedule and warm start (the extrapolated one, 0.5: about a fifth fewer sweeps, the
     starting point only): a change to the study's calibrated settings must reach both files."""
+    study, gpu = _study_and("leutner_shear_gpu.toml", ("schedule", "warm_start_extrapolation"))
+    assert gpu["schedule"] == "resident" != study["schedule"]
+    assert (gpu["warm_start_extrapolation"], study["warm_start_extrapolation"]) == (0.5, 0.0)
+
+
+def _study_and(name: str, solver_keys: tuple) -> tuple[dict, dict]:
+    """scenarios/leutner_shear.toml's and scenarios/<name>'s `solver_keys`, once the two
+    scenarios are found equal but for those, their names and descriptions."""
     study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml").model_dump()
-    gpu = load_scenario(ROOT / "scenarios" / "leutner_shear_gpu.toml").model_dump()
-    assert gpu["solver"]["schedule"] == "resident" != study["solver"]["schedule"]
-    assert gpu["solver"]["warm_start_extrapolation"] == 0.5
-    assert study["solver"]["warm_start_extrapolation"] == 0.0
-    for d in (study, gpu):
+    other = load_scenario(ROOT / "scenarios" / name).model_dump()
+    kept = ({k: study["solver"].pop(k) for k in solver_keys},
+            {k: other["solver"].pop(k) for k in solver_keys})
+    for d in (study, other):
         for key in ("name", "description", "source", "text"):
             d.pop(key)
-        d["solver"].pop("schedule")
-        d["solver"].pop("warm_start_extrapolation")
-    assert gpu == study
+    assert other == study
+    return kept
 
 
 # --- session 43's mutation audit of the files and checks that guard the results -------------
@@ -662,13 +668,6 @@ def test_the_tolerance_study_is_the_study_at_a_tenth_of_its_tolerance():
     """scenarios/leutner_shear_tol1e-6.toml is leutner_shear.toml but for its name,
     description, tolerance (1e-6 against 1e-5) and sweep cap: a change to the study's
     calibrated settings must reach both files."""
-    study = load_scenario(ROOT / "scenarios" / "leutner_shear.toml").model_dump()
-    tight = load_scenario(ROOT / "scenarios" / "leutner_shear_tol1e-6.toml").model_dump()
-    assert (tight["solver"]["tolerance"], study["solver"]["tolerance"]) == (1e-6, 1e-5)
-    assert tight["solver"]["max_sweeps"] == 200000
-    for d in (study, tight):
-        for key in ("name", "description", "source", "text"):
-            d.pop(key)
-        d["solver"].pop("tolerance")
-        d["solver"].pop("max_sweeps")
-    assert tight == study
+    study, tight = _study_and("leutner_shear_tol1e-6.toml", ("tolerance", "max_sweeps"))
+    assert (tight["tolerance"], study["tolerance"]) == (1e-6, 1e-5)
+    assert (tight["max_sweeps"], study["max_sweeps"]) == (200000, 5000)
