@@ -48,10 +48,28 @@ def test_a_loose_tolerance_leaves_the_step_off_its_solution(benchmark_script):
     for row in (loose, tight):
         assert row["velocity_error_p99_mm_s"] >= row["velocity_error_median_mm_s"]
     assert loose["reference_speed_median_mm_s"] > 0
+    # the energy norm of the velocity error against the step's own, the mass-weighted RMS and
+    # the most loaded bonds' forces: all larger for the loose step
+    for key in ("energy_error_ratio", "velocity_error_mass_rms_mm_s",
+                "loaded_bonds_error_median", "loaded_bonds_error_max"):
+        assert loose[key] > tight[key] > 0, key
+    assert loose["loaded_bonds_error_max"] >= loose["loaded_bonds_error_median"]
     for key in ("impulse_error", "bond_impulse_error", "velocity_error", "wall_force_error",
-                "velocity_error_median_mm_s", "velocity_error_p99_mm_s"):
+                "velocity_error_median_mm_s", "velocity_error_p99_mm_s", "energy_error_ratio",
+                "velocity_error_mass_rms_mm_s", "loaded_bonds_error_median",
+                "loaded_bonds_error_max"):
         assert same[key] == 0.0, key
     assert same["sweeps"] == same["reference_sweeps"]
+    # several tolerances from one settled state and one reference: the row of the tolerance
+    # it settled at is the single tolerance's row, number for number
+    sim.load_state_dict(state)
+    sim.time, sim.step_index = t, k
+    script = benchmark_script("step_error")
+    both = script.step_errors(sim, 2e-4, [1e-2, 1e-6], settle_steps=3, reference_tolerance=1e-12,
+                              reference_sweeps=20000, max_sweeps=20000)
+    assert [row["tolerance"] for row in both] == [1e-2, 1e-6]
+    assert both[0] == loose
+    assert both[1]["impulse_error"] < both[0]["impulse_error"]
     sim.close()
 
 
@@ -84,4 +102,11 @@ def test_main_reads_a_checkpoint_and_its_scenario(benchmark_script, tmp_path, ca
                  "--tolerance", "1e-2", "--settle-steps", "2", "--reference-sweeps", "20000"])
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and "median / 99th percentile" in lines[0]
-    assert all(line.count("|") == 9 for line in lines) and lines[2].startswith("| 0.0002 |")
+    assert all(line.count("|") == 13 for line in lines) and lines[2].startswith("| 0.0002 | 0.01 |")
+    # two tolerances: a row for each, after one settling and one reference
+    rows = script.main([str(tmp_path / "checkpoint.h5"), str(scn_path), "--time-steps", "2e-4",
+                        "--tolerance", "1e-2,1e-6", "--settle-steps", "2",
+                        "--reference-sweeps", "20000", "--json"])
+    assert [row["tolerance"] for row in rows] == [1e-2, 1e-6]
+    assert rows[0]["reference_sweeps"] == rows[1]["reference_sweeps"]
+    assert rows[0]["impulse_error"] > rows[1]["impulse_error"]
