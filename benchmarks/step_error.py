@@ -25,7 +25,8 @@ scenario's cap); and the differences between each and the reference, relative to
 
     python benchmarks/step_error.py RUN/sample_1/checkpoint.h5 SCENARIO.toml
         [--time-steps 2e-4,1e-4,5e-5,2.5e-5] [--tolerance 1e-5[,1e-6,...]] [--settle-steps 20]
-        [--settle-tolerance TOL] [--max-sweeps N] [--reference-tolerance 1e-12]
+        [--settle-tolerance TOL] [--max-sweeps N] [--convergence impulse|quad]
+        [--reference-tolerance 1e-12]
         [--reference-sweeps 100000] [--json]
 
 Session 52, the seed-1 shear at 1.0 mm (the study's scenario at H = 2e-4 s, tolerance 1e-5),
@@ -50,11 +51,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
 
 
-def _solve_once(sim, d, t, k, tolerance, max_sweeps):
-    """The next step from state `d` at clock `t`, step `k`: its record and what is compared."""
+def _solve_once(sim, d, t, k, tolerance, max_sweeps, convergence=None):
+    """The next step from state `d` at clock `t`, step `k` (stopped by the `convergence`
+    measure, by default the settings'): its record and what is compared."""
     sim.load_state_dict(d)
     sim.time, sim.step_index = t, k
-    sim.settings = dataclasses.replace(sim.settings, tolerance=tolerance, max_sweeps=max_sweeps)
+    sim.settings = dataclasses.replace(sim.settings, tolerance=tolerance, max_sweeps=max_sweeps,
+                                       convergence=convergence or sim.settings.convergence)
     rec = sim.step()
     s = sim.state_dict()
     moving = [w for w, wall in enumerate(sim.walls) if wall.motion != "fixed"]
@@ -105,11 +108,13 @@ def _loaded_bonds(bonds, bonds_ref) -> dict:
 
 def step_errors(sim, time_step: float, tolerances, *, settle_steps: int = 20,
                 settle_tolerance: float | None = None, reference_tolerance: float = 1e-12,
-                reference_sweeps: int = 100000, max_sweeps: int | None = None) -> list[dict]:
+                reference_sweeps: int = 100000, max_sweeps: int | None = None,
+                convergence: str | None = None) -> list[dict]:
     """Run `settle_steps` steps of `sim` at `time_step` and `settle_tolerance` (the first of
-    `tolerances` by default), then compare its next step at each tolerance with the same step
-    at the reference tolerance (see the module's docstring): one row per tolerance. `sim` is
-    left after the last tolerance's step."""
+    `tolerances` by default), then compare its next step at each tolerance (stopped by the
+    `convergence` measure, by default the scenario's) with the same step at the reference
+    tolerance (see the module's docstring): one row per tolerance. `sim` is left after the
+    last tolerance's step."""
     cap = max_sweeps or sim.settings.max_sweeps
     tolerances = [float(t) for t in tolerances]
     settle = tolerances[0] if settle_tolerance is None else settle_tolerance
@@ -124,17 +129,19 @@ def step_errors(sim, time_step: float, tolerances, *, settle_steps: int = 20,
     v_free = (d["particles/v"] + time_step * (inv_mass > 0)[:, None]
               * (np.asarray(sim.settings.gravity, dtype=float)
                  + d["particles/f_ext"] * inv_mass[:, None]))
-    ref, b = _solve_once(sim, d, t, k, reference_tolerance, reference_sweeps)
+    measure = sim.settings.convergence
+    ref, b = _solve_once(sim, d, t, k, reference_tolerance, reference_sweeps, measure)
     step = _energy(m, inertia, b["v"] - v_free, b["w"] - d["particles/w"])
     rows = []
     for tolerance in tolerances:
-        rec, a = _solve_once(sim, d, t, k, tolerance, cap)
+        rec, a = _solve_once(sim, d, t, k, tolerance, cap, convergence or measure)
         if not np.array_equal(a["pairs"], b["pairs"]):
             raise RuntimeError("the two solves of one step built different contact lists")
         dv = a["v"] - b["v"]
         grain = np.linalg.norm(dv, axis=1) * 1e3
         rows.append({
-            "time_step": time_step, "tolerance": tolerance, "sweeps": rec.sweeps,
+            "time_step": time_step, "tolerance": tolerance,
+            "convergence": convergence or measure, "sweeps": rec.sweeps,
             "residual": rec.residual, "reference_sweeps": ref.sweeps,
             "reference_residual": ref.residual,
             "impulse_error": _relative(np.concatenate([a["bonds"], a["contacts"]]),
@@ -168,6 +175,9 @@ def main(argv=None) -> list:
                     help="the settling steps' tolerance (default: the first of --tolerance)")
     ap.add_argument("--max-sweeps", type=int, default=None,
                     help="the sweep cap of the settling and compared steps (default: the scenario's)")
+    ap.add_argument("--convergence", choices=["impulse", "quad"], default=None,
+                    help="the measure that stops the compared steps (default: the scenario's; "
+                    "the settling and the reference keep the scenario's)")
     ap.add_argument("--reference-tolerance", type=float, default=1e-12)
     ap.add_argument("--reference-sweeps", type=int, default=100000)
     ap.add_argument("--arch", default="cpu", choices=["cpu", "gpu"])
@@ -191,6 +201,7 @@ def main(argv=None) -> list:
         sim = runner.restore_simulation(scn, arrays, meta)
         rows = step_errors(sim, h, tolerances, settle_steps=a.settle_steps,
                            settle_tolerance=a.settle_tolerance, max_sweeps=a.max_sweeps,
+                           convergence=a.convergence,
                            reference_tolerance=a.reference_tolerance,
                            reference_sweeps=a.reference_sweeps)
         sim.close()

@@ -110,3 +110,12 @@ def test_main_reads_a_checkpoint_and_its_scenario(benchmark_script, tmp_path, ca
     assert [row["tolerance"] for row in rows] == [1e-2, 1e-6]
     assert rows[0]["reference_sweeps"] == rows[1]["reference_sweeps"]
     assert rows[0]["impulse_error"] > rows[1]["impulse_error"]
+    assert {row["convergence"] for row in rows} == {"impulse"}
+    # the compared step stopped by LMGC90's Quad check instead: the same settling and reference
+    args = [str(tmp_path / "checkpoint.h5"), str(scn_path), "--time-steps", "2e-4", "--tolerance",
+            "1e-6", "--settle-steps", "2", "--reference-sweeps", "20000", "--json"]
+    (impulse,), (quad,) = script.main(args), script.main(args + ["--convergence", "quad"])
+    assert (impulse["convergence"], quad["convergence"]) == ("impulse", "quad")
+    assert quad["reference_sweeps"] == impulse["reference_sweeps"]
+    assert quad["reference_residual"] == impulse["reference_residual"]
+    assert quad["sweeps"] != impulse["sweeps"]
