@@ -168,9 +168,10 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
     went_on = []
     for r in runs:
-        records = [(smp.get("seed", "?"), (smp.get("branched_from") or [None])[-1])
+        records = [(smp.get("seed", "?"), smp["branched_from"][-1])
                    for smp in (r["summary"] or {}).get("samples", []) or []
-                   if isinstance(smp, dict) and isinstance(smp.get("branched_from"), list)]
+                   if isinstance(smp, dict) and isinstance(smp.get("branched_from"), list)
+                   and smp["branched_from"]]
         records += [(s.seed, s.branched_from) for s in r["samples"] if s.stopped]
         for seed, record in records:
             try:

@@ -69,7 +69,7 @@ class Progress:
         self.tty = enabled and sys.stderr.isatty()
         self.bar = None
         self.first = None          # the step of the first update
-        self.t0 = self.last = self.last_update = time.perf_counter()
+        self.t0 = self.last = time.perf_counter()    # `last`: the last log line (or bar update)
         self.done = 0
         self.last_step = 0         # the step of the last log line
         self.sweeps, self.counted = 0, 0       # sweeps summed since then, over `counted` steps
@@ -80,17 +80,17 @@ class Progress:
         self.counted += 1
 
     def due(self) -> bool:
-        """Whether an update is due before the next 100th step: 10 s since the last one in a
-        log (1 s on a terminal). A bond cascade at a tight tolerance takes 10 s a step, and a
-        log updated only every 100th step would say nothing for a quarter of an hour."""
+        """Whether an update is due before the next 100th step: 10 s since the last log line
+        (1 s since the bar's last update on a terminal). A bond cascade at a tight tolerance
+        takes 10 s a step, and a log updated only every 100th step would say nothing for a
+        quarter of an hour."""
         return (self.enabled and self.first is not None
-                and time.perf_counter() - self.last_update >= (1.0 if self.tty else 10.0))
+                and time.perf_counter() - self.last >= (1.0 if self.tty else 10.0))
 
     def update(self, step: int, sim_time: float, extra: str = "") -> None:
         if not self.enabled:
             return
         now = time.perf_counter()
-        self.last_update = now
         if self.first is None:
             self.first, self.done, self.t0, self.last = step, step, now, now
             self.last_step = step
@@ -101,6 +101,7 @@ class Progress:
         n = step - self.done
         self.done = step
         if self.bar is not None:
+            self.last = now
             self.bar.update(n)
             self.bar.set_postfix_str(f"t={sim_time:.4f}s {extra}", refresh=False)
             return
@@ -437,9 +438,9 @@ def run_info(out) -> str:
     stages = [st.get("kind", "?") for st in stage_docs]
     # each shear stage's smoothing window (m), for the peak so far of a stopped shear
     default_window = ShearStage.model_fields["smoothing_window_mm"].default
-    windows = {k: st.get("smoothing_window_mm", default_window) * 1e-3
-               for k, st in enumerate(stage_docs) if st.get("kind") == "shear"
-               and isinstance(st.get("smoothing_window_mm", default_window), (int, float))}
+    windows = {k: w * 1e-3 for k, st in enumerate(stage_docs) if st.get("kind") == "shear"
+               for w in [st.get("smoothing_window_mm", default_window)]
+               if isinstance(w, (int, float))}
     seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
     seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)

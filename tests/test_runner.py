@@ -1464,8 +1464,8 @@ def test_a_prepared_sample_records_its_courses(micro_run):
     assert meta["courses"] == ["binder", "surface"]
 
 
-def test_progress_is_due_ten_seconds_after_its_last_update_in_a_log(monkeypatch):
-    """In a log (not a terminal) an update is due 10 s after the last one, whatever the step:
+def test_progress_is_due_ten_seconds_after_its_last_line_in_a_log(monkeypatch):
+    """In a log (not a terminal) an update is due 10 s after the last line, whatever the step:
     never before the first update, not at 9.9 s, at 10 s, and not again just after it."""
     from tcd import runner
     now = [0.0]
