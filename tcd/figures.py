@@ -39,12 +39,13 @@ from matplotlib.figure import Figure
 
 from . import io
 from . import observables as obs
+from .config import ShearStage
 
 #: paper Table 2 (MPa, mm): the experiments and the paper's own simulations
 EXPERIMENT, PAPER_SIMULATION = obs.PAPER_EXPERIMENT, obs.PAPER_SIMULATION
-#: moving-average window (m of imposed displacement) when the series does not give one
-#: (the scenario default, shear.smoothing_window_mm = 0.1)
-DEFAULT_SMOOTHING_WINDOW = 1e-4
+#: moving-average window (m of imposed displacement) when the series does not give one:
+#: the scenario's default, ``[[stage]] smoothing_window_mm`` of a shear stage (0.1 mm)
+DEFAULT_SMOOTHING_WINDOW = ShearStage.model_fields["smoothing_window_mm"].default * 1e-3
 #: end of the imposed displacement in the paper (m); Fig. 4's x range
 DISPLACEMENT_END = 2.5e-3
 
