@@ -707,13 +707,15 @@ def test_progress_lines_give_the_rate_and_sweeps_since_the_line_before(capsys, m
         bar.count_sweeps(50)
     bar.update(100, 3.50, "sweeps=50")
     first = capsys.readouterr().err
-    assert "10.0 steps/s, at this rate" in first and "over the last" not in first
+    assert "10.0 steps/s, 24.8 min left at the mean rate sweeps=50" in first
+    assert "over the last" not in first and "last lines' rate" not in first
     for k in range(100):
         bar.count_sweeps(10 if k < 50 else 30)
     bar.update(200, 3.52, "sweeps=30")
     line = capsys.readouterr().err
     assert "5.0 steps/s (3.3 over the last 100 steps, 20.0 sweeps per step)" in line
-    assert "at this rate at most 49.3 min left sweeps=30" in line
+    # the time left at both rates: 14800 steps at 5 and at 3.3 steps per second
+    assert "49.3 min left at the mean rate, 74.0 at the last lines' rate sweeps=30" in line
 
 
 def test_jobs_that_would_share_cores_between_partitioned_threads_are_refused(tmp_path, monkeypatch):
