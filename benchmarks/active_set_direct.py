@@ -24,13 +24,14 @@ at tolerance 1e-13. Then `--rounds` rounds of:
     contacts R = 0, broken bonds held. H has 3 rows per item and 6 columns per grain (the
     bonds' arms at the middle of their gap). SuperLU on K scaled to a unit diagonal, ordered on
     K + K^T, no pivoting: 35142 unknowns, 1.36 M entries, 19 M in the factors, 3.5-4 s;
-  - R projected on the cones, `--damping` of the change taken, v = v + M^-1 H^T dR.
+  - R projected on the cones, `--damping` of the change taken (or `--line-search`, below),
+    v = v + M^-1 H^T dR.
 `--hold-contacts` solves the bonds alone exactly, the contacts' impulses held (a block
 Gauss-Seidel: the bonded network exactly, the contacts by the sweeps).
 
     PYTHONPATH=<scipy> python benchmarks/active_set_direct.py CKPT SCENARIO [--settle-steps 20]
         [--time-step 2e-4] [--settle-tolerance 1e-5] [--sweeps 5] [--rounds 10]
-        [--reference-sweeps 60000] [--eps 1e-6] [--damping 1] [--hold-contacts]
+        [--reference-sweeps 60000] [--eps 1e-6] [--damping 1 | --line-search] [--hold-contacts]
 
 Session 57, the study's seed 1 at 1.0 mm (the state of step_error.py's table), 20 steps at
 tolerance 1e-5, reference 20000 sweeps (2607 contacts, 17588 bonds, 16183 intact); "impulses"
@@ -48,9 +49,13 @@ after 17 sweeps, 1.93e-2 after 100, 1.51e-2 after 1000.
     a tenth of the contacts change status each round, and the small grains' spins
     (inverse inertia up to 2.3e11) amplify every change. Damped steps (0.5, 0.2) diverge as
     well, more slowly.
-  So a Newton-like method on this problem needs a globalisation (a merit function and line
-  search, as LMGC90's nonsmooth Newton solvers have) that this prototype does not have; the
-  bond block alone gives nothing. Not built into tcd.
+  - `--line-search` (the largest of 1, 1/2, ... 1/64 of the change that lowers the summed
+    squared natural-map residual of all items): no fraction of the solve's change lowers it,
+    in any of eight rounds (merit 8.8e-10 after 5 sweeps, 2.0e-10 after 40, all by the
+    sweeps): the frozen statuses' solve, regularised, is not a descent direction here.
+  So a Newton method on this problem would need the generalised Jacobian of the natural map
+  itself (LMGC90's nonsmooth Newton solvers), not a solve of frozen statuses; the bond block
+  alone gives nothing. Not built into tcd.
 """
 from __future__ import annotations
 
@@ -69,6 +74,7 @@ EPS = 1e-6
 PERMC = "MMD_AT_PLUS_A"
 HOLD_CONTACTS = False
 DAMPING = 1.0
+LINE_SEARCH = False
 
 
 def cross_matrix(n):
@@ -222,7 +228,21 @@ def direct_round(sim, c, b, g, stats):
     scale = np.where(tn > c["mu"] * rn, c["mu"] * rn / np.maximum(tn, 1e-300), 1.0)
     if not HOLD_CONTACTS:
         rnew[:mc] = rn[:, None] * cn_ + scale[:, None] * rt
-    dr = DAMPING * (rnew - r)           # a damped step (no line search)
+    if LINE_SEARCH:                      # the largest of 1, 1/2, ... 1/64 that lowers the merit
+        vel0 = vel
+        phi0 = merit(c, b, g, h, minv, vel0, r, rhs, rhs_w, intact, w_diag_n)
+        alpha, best = 0.0, phi0
+        for e in range(7):
+            trial_r = r + 0.5 ** e * (rnew - r)
+            trial_v = vel0 + minv * (h.T @ (trial_r - r).ravel())
+            phi = merit(c, b, g, h, minv, trial_v, trial_r, rhs, rhs_w, intact, w_diag_n)
+            if phi < phi0:
+                alpha, best = 0.5 ** e, phi
+                break
+        stats.update(alpha=alpha, merit0=phi0, merit=best)
+        dr = alpha * (rnew - r)
+    else:
+        dr = DAMPING * (rnew - r)        # a damped step
     rnew = r + dr
     dvel = (minv * (h.T @ dr.ravel())).reshape(n, 6)
     c = dict(c, r=rnew[:mc])
@@ -233,6 +253,28 @@ def direct_round(sim, c, b, g, stats):
                  bonds=int(intact.sum()), unknowns=K.shape[0], nnz=K.nnz,
                  fill=lu.L.nnz + lu.U.nnz, assemble_s=t1 - t0, solve_s=t2 - t1,
                  change=float(np.abs(dr).sum() / max(np.abs(rnew).sum(), 1e-300)))
+
+
+def merit(c, b, g, h, minv, vel, r, rhs, rhs_w, intact, w_diag_n):
+    """The squared natural-map residual of every item at impulses r and velocities vel: a
+    contact's R - proj_cone(R - (u + rhs n) / W_nn), an intact bond's (u + C R + rhs) /
+    (W_nn + c_n), in impulse units."""
+    mc = len(c["i"])
+    u = (h @ vel).reshape(-1, 3) + (rhs_w - rhs)         # with the walls' side
+    cn_ = c["nrm"]
+    x = r[:mc] - (u[:mc] + rhs[:mc]) / w_diag_n[:, None]
+    xn = np.maximum((x * cn_).sum(1), 0.0)
+    xt = x - (x * cn_).sum(1)[:, None] * cn_
+    tn = np.linalg.norm(xt, axis=1)
+    sc = np.where(tn > c["mu"] * xn, c["mu"] * xn / np.maximum(tn, 1e-300), 1.0)
+    fc = r[:mc] - (xn[:, None] * cn_ + sc[:, None] * xt)
+    bn = b["nrm"]
+    rb = r[mc:]
+    rbn = (rb * bn).sum(1)
+    eb = u[mc:] + b["cn"][:, None] * rbn[:, None] * bn + b["ct"][:, None] * (rb - rbn[:, None] * bn) + rhs[mc:]
+    wb = g["im"][b["i"]] + g["im"][b["j"]] + b["cn"]
+    fb = np.where(intact[:, None], eb / wb[:, None], 0.0)
+    return float((fc ** 2).sum() + (fb ** 2).sum())
 
 
 def snapshot(sim):
@@ -256,10 +298,11 @@ def main(argv=None):
     ap.add_argument("--reference-sweeps", type=int, default=60000)
     ap.add_argument("--eps", type=float, default=1e-6, help="the contacts' regularising compliance, relative to W_nn")
     ap.add_argument("--damping", type=float, default=1.0, help="the fraction of the solve's change taken")
+    ap.add_argument("--line-search", action="store_true", help="take the largest of 1, 1/2, ... 1/64 of the solve's change that lowers the natural-map merit (else none)")
     ap.add_argument("--hold-contacts", action="store_true", help="solve the bonds alone exactly, the contacts' impulses held (block Gauss-Seidel)")
     a = ap.parse_args(argv)
-    global EPS, HOLD_CONTACTS, DAMPING
-    EPS, HOLD_CONTACTS, DAMPING = a.eps, a.hold_contacts, a.damping
+    global EPS, HOLD_CONTACTS, DAMPING, LINE_SEARCH
+    EPS, HOLD_CONTACTS, DAMPING, LINE_SEARCH = a.eps, a.hold_contacts, a.damping, a.line_search
     import tcd
     tcd.init("cpu", "f64")
     from tcd import config, io, runner, solver as sk
@@ -306,7 +349,8 @@ def main(argv=None):
         print(f"| {rnd} | {(rnd + 1) * k} | {res:.2e} | {rel(r, ref_r):.2e} | {rel(v, ref_v):.2e} | "
               f"{st['open']} / {st['stick']} / {st['slide']} / {st['bonds']} | {st['unknowns']} | "
               f"{st['nnz']} / {st['fill']} | {st['assemble_s']:.2f}, {st['solve_s']:.2f} | "
-              f"{st['change']:.2e} |", flush=True)
+              f"{st['change']:.2e} |" + (f" step {st['alpha']:g}, merit {st['merit0']:.3e} -> "
+                                         f"{st['merit']:.3e}" if "alpha" in st else ""), flush=True)
     res = sweeps(1)
     r, v = snapshot(sim)
     print(f"| end | {a.rounds * k + 1} | {res:.2e} | {rel(r, ref_r):.2e} | {rel(v, ref_v):.2e} "
