@@ -443,7 +443,8 @@ def run_info(out) -> str:
     stage_docs = [st for st in doc.get("stage", []) if isinstance(st, dict)]
     stages = [st.get("kind", "?") for st in stage_docs]
     # each shear stage's smoothing window (m), for the peak so far of a stopped shear
-    default_window = ShearStage.model_fields["smoothing_window_mm"].default  # as figures'
+    # the scenario default, as figures.DEFAULT_SMOOTHING_WINDOW (figures loads matplotlib)
+    default_window = ShearStage.model_fields["smoothing_window_mm"].default
     windows = {k: w * 1e-3 for k, st in enumerate(stage_docs) if st.get("kind") == "shear"
                for w in [st.get("smoothing_window_mm", default_window)]
                if isinstance(w, (int, float))}
