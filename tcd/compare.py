@@ -68,9 +68,19 @@ def _shown(value) -> str:
     return str(value)
 
 
+def counted(samples: list) -> list:
+    """The samples a run's means are taken over: its finished ones when it has any (a shear
+    stopped early would pull a mean peak down to where it stopped), else its stopped ones,
+    whose numbers are then so far."""
+    finished = [s for s in samples if not s.stopped]
+    return finished or list(samples)
+
+
 def run_numbers(samples: list) -> dict:
-    """Mean and population std over a run's samples (SampleCurves) of the peak (MPa, mm), the
-    stress at the end of the test (MPa) and the share of bonds broken by then."""
+    """Mean and population std over a run's samples (SampleCurves; the finished ones when
+    there are any, :func:`counted`) of the peak (MPa, mm), the stress at the end of the test
+    (MPa) and the share of bonds broken by then; `n_samples` the samples counted, `n_stopped`
+    the stopped ones left out."""
     def stats(values):
         values = np.array([v for v in values if math.isfinite(v)], dtype=float)
         if not values.size:
@@ -84,7 +94,9 @@ def run_numbers(samples: list) -> dict:
                 if k in ser and len(ser[k])]
         return float(sum(ends)) / total if len(ends) == 2 and total > 0 else math.nan
 
-    out = {"n_samples": len(samples)}
+    used = counted(samples)
+    out = {"n_samples": len(used), "n_stopped": len(samples) - len(used)}
+    samples = used
     for key, std_key, values in (
             ("tau_peak_MPa", "tau_peak_std", [s.tau_peak * 1e-6 for s in samples]),
             ("d_peak_mm", "d_peak_std", [s.d_peak * 1e3 for s in samples]),
@@ -96,8 +108,9 @@ def run_numbers(samples: list) -> dict:
 
 
 def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray]:
-    """(displacement m, mean smoothed stress Pa) of a run's samples, on a common grid up to
-    the shortest sample's end."""
+    """(displacement m, mean smoothed stress Pa) of a run's samples (the finished ones when
+    there are any, :func:`counted`), on a common grid up to the shortest one's end."""
+    samples = counted(samples)
     ends = [float(np.nanmax(s.displacement)) for s in samples if s.displacement.size]
     if not ends:
         return np.zeros(0), np.zeros(0)
@@ -152,16 +165,20 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
             "bonds broken", "folder"]
     unfinished = [r["label"] for r in runs if r["summary"] is None]
     lines = ["Runs compared: each run's mean ± population std over its samples (peak of the "
-             "smoothed curve, as its Table 2), and the scenario settings in which the runs "
-             "differ.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+             "smoothed curve, as its Table 2; over its finished samples when some stopped "
+             "early), and the scenario settings in which the runs differ.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in runs:
         share = r["bonds_broken_share"]
+        so_far = any(smp.stopped for smp in counted(r["samples"]))
         lines.append("| " + " | ".join([
-            r["label"], *(r["settings"][k] for k in keys), str(r["n_samples"]),
+            r["label"], *(r["settings"][k] for k in keys),
+            str(r["n_samples"]) + (f" (and {r['n_stopped']} stopped, not counted)"
+                                   if r["n_stopped"] else ""),
             figures._fmt(r["tau_peak_MPa"], 3, r["tau_peak_std"]),
             figures._fmt(r["d_peak_mm"], 2, r["d_peak_std"]),
             figures._fmt(r["tau_end_MPa"], 3, r["tau_end_std"])
-            + (" (stopped before the end)" if any(smp.stopped for smp in r["samples"]) else ""),
+            + (" (stopped before the end)" if so_far else ""),
             f"{100 * share:.1f} %" if math.isfinite(share) else "–",
             os.fspath(r["dir"])]) + " |")
     if not keys:
@@ -180,8 +197,9 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
                 continue
     stopped = [f"{r['label']} (seed {s.seed} at {float(s.displacement.max()) * 1e3:.3f} mm)"
                for r in runs for s in r["samples"] if s.stopped]
-    rising = [f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'] if s.peak_at_end)})"
-              for r in runs if any(s.peak_at_end for s in r["samples"])]
+    # (a stopped shear's curve ends where it stopped: listed below, not here)
+    rising = [f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'] if s.peak_at_end and not s.stopped)})"
+              for r in runs if any(s.peak_at_end and not s.stopped for s in r["samples"])]
     if rising:
         lines += ["", "Curves still rising at their end (the peak within half a smoothing window "
                       "of the last point: no failure seen, the peak a lower bound), by run "
@@ -189,7 +207,8 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
     if stopped:
         lines += ["", "Shears stopped before the end of their test (no series file: their curves "
                       "and peaks so far, from the checkpoint a `--resume` continues from; a "
-                      "higher peak may come later), by run: " + "; ".join(stopped) + "."]
+                      "higher peak may come later; a run's means leave them out when it has "
+                      "finished samples), by run: " + "; ".join(stopped) + "."]
     if went_on:
         lines += ["", "Runs that went on from another run's state (`tcd run --from`; up to "
                       "there their curves are that run's): " + "; ".join(went_on) + "."]
@@ -203,7 +222,8 @@ def table_csv(runs: list[dict], keys: list[str]) -> str:
     buffer = _stdio.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     numbers = ["n_samples", "tau_peak_MPa", "tau_peak_std", "d_peak_mm", "d_peak_std",
-               "tau_end_MPa", "tau_end_std", "bonds_broken_share", "bonds_broken_std"]
+               "tau_end_MPa", "tau_end_std", "bonds_broken_share", "bonds_broken_std",
+               "n_stopped"]
     writer.writerow(["label", *keys, *numbers, "folder"])
     for r in runs:
         writer.writerow([r["label"], *(r["settings"][k] for k in keys),
@@ -219,18 +239,22 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
         fig = figures._new_figure(7.2, 4.2 + 0.22 * len(runs))
         ax = fig.add_subplot()
         for r, color in zip(runs, figures._colors(len(runs))):
+            def left_out(s):               # a stopped one left out of the mean: dashed
+                return s.stopped and r["n_stopped"] > 0
+
             for s in r["samples"]:
                 ax.plot(s.displacement * 1e3, s.smoothed * 1e-6, color=color, lw=0.6,
-                        alpha=0.35, zorder=1)
+                        alpha=0.35, zorder=1, ls="--" if left_out(s) else "-")
             d, tau = mean_curve(r["samples"])
             shown = "; ".join(f"{k.split('.')[-1]} {_short(r['settings'][k])}" for k in keys[:3])
-            ends = [f"stopped at {float(s.displacement.max()) * 1e3:.2f} mm"
-                    for s in r["samples"] if s.stopped]
+            at = [f"{float(s.displacement.max()) * 1e3:.2f}" for s in r["samples"] if s.stopped]
+            ends = [f"{len(at)} stopped at {', '.join(at)} mm" + (
+                ", dashed, not in the mean" if r["n_stopped"] else "")] if at else []
             label = (f"{r['label']} ({r['n_samples']} sample{'s' if r['n_samples'] != 1 else ''}"
                      f"{': ' + shown if shown else ''}{'; ' + ', '.join(ends) if ends else ''})")
             # a long label (a file path, many settings) would squeeze the axes to nothing
             ax.plot(d * 1e3, tau * 1e-6, color=color, lw=2.0, zorder=2,
-                    label="\n".join(textwrap.wrap(label, 90)))
+                    label="\n".join(textwrap.wrap(label, 80)))
             xerr = r["d_peak_std"] if math.isfinite(r["d_peak_std"]) else None
             yerr = r["tau_peak_std"] if math.isfinite(r["tau_peak_std"]) else None
             ax.errorbar(r["d_peak_mm"], r["tau_peak_MPa"], xerr=xerr, yerr=yerr, fmt="o",
@@ -249,4 +273,4 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
         figures._save(fig, out_png.with_suffix(".pdf"), written)
 
 
-__all__ = ["compare_runs", "differing_settings", "mean_curve", "run_numbers"]
+__all__ = ["compare_runs", "counted", "differing_settings", "mean_curve", "run_numbers"]

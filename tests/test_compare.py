@@ -172,7 +172,8 @@ def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
     md = (out / "compare.md").read_text()
     assert ("Shears stopped before the end of their test (no series file: their curves and peaks "
             "so far, from the checkpoint a `--resume` continues from; a higher peak may come "
-            "later), by run: cut (seed 4 at 2.000 mm).") in md, md
+            "later; a run's means leave them out when it has finished samples), by run: cut "
+            "(seed 4 at 2.000 mm).") in md, md
     assert "cut (seed 4) from /runs/base" in md, md
     (row_cut,) = [line for line in md.splitlines() if line.startswith("| cut |")]
     assert " (stopped before the end) | " in row_cut and "(stopped" not in md.split("| cut |")[0]
@@ -198,3 +199,40 @@ def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
     _stopped_checkpoint(odd, 6, stage=-1)
     with pytest.raises(ValueError, match=r"checkpoint.h5: its stage cannot be read"):
         figures.load_stopped_sample("6", odd / "sample_6")
+
+
+def test_a_runs_means_leave_out_its_stopped_shears(tmp_path):
+    """A run with finished and stopped samples (a study under way): its mean peak, spread and
+    mean curve are those of its finished samples (a shear stopped at 2.0 mm with 0.8 MPa
+    would pull the mean down); the stopped one is drawn, named, counted apart and not listed
+    as a curve still rising; a run of stopped samples only keeps its numbers so far."""
+    from tcd import figures
+    mixed = tmp_path / "mixed"
+    _stopped_checkpoint(mixed, 4, stage=1)
+    _write_sample(mixed, 1, 0.95e6, 2.3e-3)
+    _write_sample(mixed, 2, 0.85e6, 2.2e-3)
+    (mixed / "scenario.toml").write_text(
+        (mixed / "scenario.toml").read_text().replace("seeds = [4]", "seeds = [1, 2, 4]"))
+    _, samples = figures.load_run(mixed, stopped=True)
+    assert sorted((s.seed, s.stopped) for s in samples) == [("1", False), ("2", False), ("4", True)]
+    finished = [s for s in samples if not s.stopped]
+    numbers = compare.run_numbers(samples)
+    assert numbers["n_samples"] == 2 and numbers["n_stopped"] == 1
+    assert numbers["tau_peak_MPa"] == pytest.approx(np.mean([s.tau_peak * 1e-6 for s in finished]))
+    assert numbers["tau_peak_std"] == pytest.approx(np.std([s.tau_peak * 1e-6 for s in finished]))
+    d, _ = compare.mean_curve(samples)
+    assert d[-1] == pytest.approx(2.5e-3)           # the stopped one's 2.0 mm does not cut it
+    done = _run(tmp_path, "done", [(3, 0.85e6, 2.2e-3)])
+    out = tmp_path / "cmp"
+    compare.compare_runs([done, mixed], out, labels=["done", "going"])
+    md = (out / "compare.md").read_text()
+    (row,) = [line for line in md.splitlines() if line.startswith("| going |")]
+    assert " | 2 (and 1 stopped, not counted) | " in row and "(stopped before the end)" not in row
+    assert f"{numbers['tau_peak_MPa']:.3f} ± {numbers['tau_peak_std']:.3f}" in row
+    assert "going (seed 4 at 2.000 mm)" in md and "going (4)" not in md
+    csv_rows = [line.split(",") for line in (out / "compare.csv").read_text().splitlines()]
+    assert dict(zip(csv_rows[0], csv_rows[2]))["n_stopped"] == "1"
+    # only stopped samples: their numbers so far, marked as such
+    only = compare.run_numbers([s for s in samples if s.stopped])
+    assert only["n_samples"] == 1 and only["n_stopped"] == 0
+    assert only["tau_peak_MPa"] == pytest.approx(0.8, rel=0.01)
