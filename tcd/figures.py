@@ -199,6 +199,21 @@ def peak_at_end_note(samples: list[SampleCurves]) -> str:
             "find each peak there or later, as high or higher.")
 
 
+def left_out_note(skipped: list, counted: int) -> str:
+    """The sentence under Table 2 naming the samples left out of it and of the figures
+    (`skipped`: (seed, reason) from :func:`load_runs`), or "" when none was: a reader of the
+    table alone must not take the mean of some samples for the study's."""
+    if not skipped:
+        return ""
+    def why(exc):
+        return ("no series file yet: stopped or still running" if isinstance(exc, FileNotFoundError)
+                else "its series unreadable")
+    names = "; ".join(f"sample {seed} ({why(exc)})" for seed, exc in skipped)
+    return (f"Left out of this table and the figures: {names}. The means are over the other "
+            f"{counted} sample{'s' if counted != 1 else ''}; `tcd info RUN_DIR` says where each "
+            "sample stands.")
+
+
 def _sample_dirs(run_dir: Path, summary: dict | None) -> list[tuple[str, Path]]:
     """(seed, directory) for the summary's samples first, then any other sample_* folder."""
     found, seen = [], set()
@@ -480,9 +495,11 @@ def _as_run_dirs(run_dirs) -> list[Path]:
     return [Path(p) for p in run_dirs]
 
 
-def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
+def load_runs(run_dirs, skipped: list | None = None) -> tuple[dict | None, list[SampleCurves]]:
     """Like :func:`load_run` for one or several run directories of one study (a study split
-    with ``tcd run --seeds``): the samples of all of them and their merged summary.
+    with ``tcd run --seeds``): the samples of all of them and their merged summary. Each
+    sample skipped gives a warning, and with a list `skipped` is appended to it as (seed,
+    reason) too.
 
     Raises ValueError for runs of different scenarios, a seed found twice, or a run without a
     usable sample; FileNotFoundError for a missing directory.
@@ -491,14 +508,22 @@ def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
     if not run_dirs:
         raise ValueError("no run directory given")
     if len(run_dirs) == 1:
-        return load_run(run_dirs[0])
+        own: list = []
+        try:
+            summary, samples = load_run(run_dirs[0], own)
+        finally:                         # warned even when no sample is left (ValueError)
+            for seed, exc in own:
+                warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+            if skipped is not None:
+                skipped += own
+        return summary, samples
     for run_dir in run_dirs:
         if not run_dir.is_dir():
             raise FileNotFoundError(f"{run_dir}: run directory not found")
     check_one_study(run_dirs)
-    parts, samples, skipped = [], [], []
+    parts, samples, found_skipped = [], [], []
     for run_dir in run_dirs:
-        summary, found = load_run(run_dir, skipped)
+        summary, found = load_run(run_dir, found_skipped)
         parts.append((run_dir, summary if summary is not None else summary_from_samples(found)))
         samples += found
     merged = merge_summaries(parts)     # raises on a seed found twice
@@ -506,9 +531,11 @@ def load_runs(run_dirs) -> tuple[dict | None, list[SampleCurves]]:
     # a seed unfinished in one part (an interrupted invocation) and finished in another is
     # not skipped: only the seeds missing from the study are reported
     have = {str(s.seed) for s in samples}
-    for seed, exc in skipped:
+    for seed, exc in found_skipped:
         if str(seed) not in have:
             warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+            if skipped is not None:
+                skipped.append((seed, exc))
     return merged, samples
 
 
@@ -881,7 +908,8 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True,
         raise ValueError("several run directories: give the folder for their figures (--out)")
     out_dir = Path(out_dir) if out_dir is not None else run_dirs[0] / "figures"
     refuse_file(out_dir)
-    summary, samples = load_runs(run_dirs)
+    skipped: list = []
+    summary, samples = load_runs(run_dirs, skipped)
     run_dir = run_dirs[0]
     make_folder(out_dir)
     written: list[Path] = []
@@ -899,7 +927,8 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True,
     rows = table2_rows(summary if summary is not None else summary_from_samples(samples),
                        paper_test)
     note = "" if paper_test else not_compared_note(summary)
-    footnote = peak_at_end_note(samples)
+    footnote = " ".join(t for t in (peak_at_end_note(samples),
+                                    left_out_note(skipped, len(samples))) if t)
     _write_text(out_dir / "table2.md", table2_markdown(rows, note, footnote), written)
     _write_text(out_dir / "table2.csv", table2_csv(rows), written)
     figure_table2(rows, out_dir / "table2.png", written, note, footnote)

@@ -198,6 +198,26 @@ def test_make_figures_skips_samples_without_series(tmp_path):
     assert (out / "fig4_stress_displacement.png") in written
     md = (out / "table2.md").read_text()
     assert "0.850" in md and "2.20" in md and "one sample" in md and "±" not in md
+    # a reader of the table alone learns that a sample is missing from its mean
+    assert ("Left out of this table and the figures: sample 6 (no series file yet: stopped or "
+            "still running). The means are over the other 1 sample;") in md, md
+    # a sample with an unreadable series, beside one still running, and two counted
+    _write_sample(run, 4, 0.80e6, 2.1e-3)
+    (run / "sample_7").mkdir()
+    (run / "sample_7" / "shear_series.h5").write_bytes(b"not HDF5")
+    with pytest.warns(FigureWarning, match="sample 7 skipped"):
+        make_figures(run, out, render=False)
+    md = (out / "table2.md").read_text()
+    assert ("Left out of this table and the figures: sample 6 (no series file yet: stopped or "
+            "still running); sample 7 (its series unreadable). The means are over the other 2 "
+            "samples;") in md, md
+    # nothing left out: no such sentence
+    (run / "sample_6").rmdir()
+    for f in (run / "sample_7").iterdir():
+        f.unlink()
+    (run / "sample_7").rmdir()
+    make_figures(run, out, render=False)
+    assert "Left out" not in (out / "table2.md").read_text()
 
 
 @pytest.mark.parametrize("text, why", [("[]", "not a JSON object"),
