@@ -334,7 +334,8 @@ def cmd_compare(args) -> int:
                          "tcd figures RUN_DIR)")
     labels = args.labels.split(",") if args.labels is not None else None
     from .compare import compare_runs
-    written = _figure_warnings_as_lines(lambda: compare_runs(run_dirs, args.out, labels))
+    written = _figure_warnings_as_lines(lambda: compare_runs(run_dirs, args.out, labels,
+                                                            args.seeds))
     for path in written:
         print(path)
     return 0
@@ -638,6 +639,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where to write compare.png/.pdf/.md/.csv")
     p.add_argument("--labels", metavar="A,B,...",
                    help="one name per run (default: each directory's name)")
+    p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
+                   help="only these samples of each run (the same samples under each setting; "
+                        "default: all)")
     p.set_defaults(handler=cmd_compare)
 
     p = sub.add_parser("view", help="interactive viewer of a states file (needs a display)")

@@ -119,11 +119,13 @@ def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray
     return grid, np.mean(curves, axis=0)
 
 
-def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
+def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
     """Write compare.png/.pdf/.md/.csv of `run_dirs` (at least two run directories) into
-    `out_dir`; `labels`: one name per run (default: each directory's name). Returns the files
-    written. Raises ValueError for fewer than two runs, labels that do not match them, a run
-    without a usable sample; FileNotFoundError for a missing directory."""
+    `out_dir`; `labels`: one name per run (default: each directory's name); `seeds`: only
+    these samples of each run (the same samples under two settings; default: all). Returns the
+    files written. Raises ValueError for fewer than two runs, labels that do not match them, a
+    run without a usable sample (or without any of `seeds`); FileNotFoundError for a missing
+    directory."""
     run_dirs = [Path(p) for p in run_dirs]
     if len(run_dirs) < 2:
         raise ValueError("tcd compare needs at least two run directories (one run's figures: "
@@ -142,9 +144,16 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
             raise FileNotFoundError(f"{run_dir}: run directory not found")
     out_dir = Path(out_dir)
     figures.refuse_file(out_dir)
+    wanted = None if seeds is None else {str(x) for x in seeds}
     runs = []
     for label, run_dir in zip(labels, run_dirs):
         summary, samples = figures.load_run(run_dir, stopped=True)
+        if wanted is not None:
+            have = sorted((str(s.seed) for s in samples), key=figures._seed_key)
+            samples = [s for s in samples if str(s.seed) in wanted]
+            if not samples:
+                raise ValueError(f"{run_dir}: none of the seeds {', '.join(sorted(wanted, key=figures._seed_key))} "
+                                 f"(its samples: {', '.join(have)})")
         runs.append({"label": label, "dir": run_dir, "summary": summary, "samples": samples,
                      "scenario": figures._scenario_of(run_dir), **run_numbers(samples)})
     keys = differing_settings([r["scenario"] for r in runs])
@@ -155,12 +164,12 @@ def compare_runs(run_dirs, out_dir, labels=None) -> list[Path]:
     figures.make_folder(out_dir)
     written: list[Path] = []
     _figure(runs, keys, out_dir / "compare.png", written)
-    figures._write_text(out_dir / "compare.md", table_markdown(runs, keys), written)
+    figures._write_text(out_dir / "compare.md", table_markdown(runs, keys, seeds), written)
     figures._write_text(out_dir / "compare.csv", table_csv(runs, keys), written)
     return written
 
 
-def table_markdown(runs: list[dict], keys: list[str]) -> str:
+def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
     head = ["run", *keys, "samples", "peak τ (MPa)", "at d (mm)", "τ at the end (MPa)",
             "bonds broken", "folder"]
     unfinished = [r["label"] for r in runs if r["summary"] is None]
@@ -183,6 +192,10 @@ def table_markdown(runs: list[dict], keys: list[str]) -> str:
             os.fspath(r["dir"])]) + " |")
     if not keys:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
+    if seeds is not None:
+        lines += ["", "Only the samples of seeds " + ", ".join(map(str, seeds)) + " (`--seeds`), "
+                      "by run: " + "; ".join(f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'])})"
+                                            for r in runs) + "."]
     went_on = []
     for r in runs:
         records = [(smp.get("seed", "?"), smp["branched_from"][-1])

@@ -236,3 +236,29 @@ def test_a_runs_means_leave_out_its_stopped_shears(tmp_path):
     only = compare.run_numbers([s for s in samples if s.stopped])
     assert only["n_samples"] == 1 and only["n_stopped"] == 0
     assert only["tau_peak_MPa"] == pytest.approx(0.8, rel=0.01)
+
+
+def test_compare_seeds_takes_the_same_samples_of_each_run(tmp_path, capsys):
+    """`--seeds`: only those samples of each run (a study at two settings, compared on the
+    samples both have); a run without any of them is refused, naming what it has."""
+    from tcd import figures
+    five = _run(tmp_path, "five", [(s, (0.80 + 0.02 * s) * 1e6, 2.2e-3) for s in range(1, 6)])
+    three = _run(tmp_path, "three", [(s, (0.85 + 0.02 * s) * 1e6, 2.3e-3) for s in (2, 3, 4)],
+                 yield_=1.6)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(five), str(three), "--seeds", "2,4", "--out", str(out)]) == 0
+    md = (out / "compare.md").read_text()
+    rows = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in md.splitlines()
+            if line.startswith("| five |") or line.startswith("| three |")}
+    assert rows["five"][2] == "2" and rows["three"][2] == "2"      # after the yield column
+    _, every = figures.load_run(five)
+    taken = [s.tau_peak * 1e-6 for s in every if s.seed in ("2", "4")]
+    assert rows["five"][3] == f"{np.mean(taken):.3f} ± {np.std(taken):.3f}"
+    assert "Only the samples of seeds 2, 4 (`--seeds`), by run: five (2, 4); three (2, 4)." in md
+    # none of the seeds in a run: refused, nothing written
+    assert main(["compare", str(five), str(three), "--seeds", "5", "--out",
+                 str(tmp_path / "none")]) == 2
+    assert "three: none of the seeds 5 (its samples: 2, 3, 4)" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
+    assert main(["compare", str(five), str(three), "--seeds", "x", "--out", str(out)]) == 2
+    assert "expected comma-separated integer seeds" in capsys.readouterr().err
