@@ -152,8 +152,9 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
             have = sorted((str(s.seed) for s in samples), key=figures._seed_key)
             samples = [s for s in samples if str(s.seed) in wanted]
             if not samples:
-                raise ValueError(f"{run_dir}: none of the seeds {', '.join(sorted(wanted, key=figures._seed_key))} "
-                                 f"(its samples: {', '.join(have)})")
+                asked = ", ".join(sorted(wanted, key=figures._seed_key))
+                raise ValueError(f"{run_dir}: none of the seeds {asked} (its samples: "
+                                 f"{', '.join(have)})")
         runs.append({"label": label, "dir": run_dir, "summary": summary, "samples": samples,
                      "scenario": figures._scenario_of(run_dir), **run_numbers(samples)})
     keys = differing_settings([r["scenario"] for r in runs])
@@ -193,9 +194,10 @@ def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
     if not keys:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
     if seeds is not None:
-        lines += ["", "Only the samples of seeds " + ", ".join(map(str, seeds)) + " (`--seeds`), "
-                      "by run: " + "; ".join(f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'])})"
-                                            for r in runs) + "."]
+        taken = "; ".join(f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'])})"
+                          for r in runs)
+        lines += ["", f"Only the samples of seeds {', '.join(map(str, seeds))} (`--seeds`), by "
+                      f"run: {taken}."]
     went_on = []
     for r in runs:
         records = [(smp.get("seed", "?"), smp["branched_from"][-1])
@@ -211,8 +213,9 @@ def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
     stopped = [f"{r['label']} (seed {s.seed} at {float(s.displacement.max()) * 1e3:.3f} mm)"
                for r in runs for s in r["samples"] if s.stopped]
     # (a stopped shear's curve ends where it stopped: listed below, not here)
-    rising = [f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'] if s.peak_at_end and not s.stopped)})"
-              for r in runs if any(s.peak_at_end and not s.stopped for s in r["samples"])]
+    ends = [(r["label"], [str(s.seed) for s in r["samples"] if s.peak_at_end and not s.stopped])
+            for r in runs]
+    rising = [f"{label} ({', '.join(seeds_)})" for label, seeds_ in ends if seeds_]
     if rising:
         lines += ["", "Curves still rising at their end (the peak within half a smoothing window "
                       "of the last point: no failure seen, the peak a lower bound), by run "

@@ -205,6 +205,7 @@ def left_out_note(skipped: list, counted: int) -> str:
     table alone must not take the mean of some samples for the study's."""
     if not skipped:
         return ""
+
     def why(exc):
         return ("no series file yet: stopped or still running" if isinstance(exc, FileNotFoundError)
                 else "its series unreadable")
