@@ -63,8 +63,8 @@ class Progress:
     count only the steps made since, so a resumed run shows its own speed. A log line also
     gives the rate and the mean sweeps per step since the line before (the steps' sweeps
     given to count_sweeps), and the time left at the mean rate and at that last rate: the rate
-    since the start includes the compiling, and a bond cascade near the peak runs a hundred
-    times slower than the mean."""
+    since the start includes the compiling, and a bond cascade near the peak runs tens to
+    hundreds of times slower than the mean (neither rate alone tells when it ends)."""
 
     def __init__(self, enabled: bool, label: str, total: int, h: float):
         self.enabled, self.label, self.total, self.h = enabled, label, total, h
@@ -117,8 +117,8 @@ class Progress:
                 if self.counted:
                     recent += f", {self.sweeps / self.counted:.1f} sweeps per step"
                 recent += ")"
-                # a bond cascade slows a run a hundredfold: the mean rate alone would promise
-                # minutes where hours are left
+                # a bond cascade slows a run tens to hundreds of times (at 1e-7 for hours):
+                # the mean rate alone would promise minutes
                 left_recent = f", {(self.total - step) / lately / 60:.1f} at the last lines' rate"
             self.last, self.last_step = now, step
             self.sweeps, self.counted = 0, 0
