@@ -978,3 +978,16 @@ def _info_sample(ds: dict) -> list[str]:
                      f"{loaded}, largest overlap {100 * obs.max_overlap(gap) / (2 * r.min()):.2f} % "
                      f"of the smallest diameter")
     return lines
+
+
+def file_record(path) -> dict:
+    """Where an input file was read from and what it held: its absolute path, size and
+    SHA-256 (a run's record of the prepared sample it sheared, so that a later reader can tell
+    whether the file there is still that one)."""
+    import hashlib
+    path = pathlib.Path(path).resolve()
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return {"path": str(path), "bytes": path.stat().st_size, "sha256": digest.hexdigest()}

@@ -674,7 +674,8 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                 o.close()
             step_in_phase, next_snapshot, wall_before = 0, 0.0, 0.0
             series = [{} for _ in seeds]
-            results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds}
+            results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds,
+                        "inputs": {"0:shear": io.file_record(stage.sample.format(seed=seed))}}
                        for seed in seeds]
         for res in results:
             _record_loop_mode(res)
@@ -952,6 +953,9 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         proto = PROTOCOLS[stage.kind](stage, scn, seed)
         if stage.kind == "shear" and getattr(stage, "sample", "") and sim is None:
             sim = load_prepared(scn, stage.sample.format(seed=seed))
+            # which file, with what in it: kept through a resume (the checkpoint's result)
+            result.setdefault("inputs", {})[f"{stage_idx}:shear"] = io.file_record(
+                stage.sample.format(seed=seed))
         t_stage = time.perf_counter() - result["wall_time_s"].get(f"{stage_idx}:{stage.kind}", 0.0)
         while True:
             if phase is None:

@@ -395,6 +395,11 @@ def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_
     b = json.loads((tmp_path / "two" / "sample_3" / "summary.json").read_text())
     assert a["bonds_total"] == b["bonds_total"] > 0
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
+    # the shear from a file records which file it read, and what was in it
+    record = b["inputs"]["0:shear"]
+    assert record == io.file_record(prepared) and record["path"] == str(prepared.resolve())
+    assert len(record["sha256"]) == 64 and record["bytes"] == prepared.stat().st_size
+    assert "inputs" not in a                  # prepared in the same run: no input file
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -559,6 +564,7 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     assert summary["batched"] and [s["seed"] for s in summary["samples"]] == [3, 4]
     for s in summary["samples"]:
         assert s["tau_peak_MPa"] == a["tau_peak_MPa"] and s["bonds_total"] == a["bonds_total"] > 0
+        assert s["inputs"] == a["inputs"] == {"0:shear": io.file_record(prepared)}
     frames = io.read_frame(tmp_path / "batch" / "sample_4" / "states.h5", -1)
     final = io.read_frame(tmp_path / "one" / "sample_3" / "states.h5", -1)
     assert np.array_equal(frames["particles/x"], final["particles/x"])
@@ -597,6 +603,8 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
                 "mm\n") in info, info
     monkeypatch.undo()
     assert run_tcd(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
+    resumed = json.loads((tmp_path / "cut" / "summary.json").read_text())
+    assert [s["inputs"] for s in resumed["samples"]] == [a["inputs"]] * 2   # through the resume
     for seed in (3, 4):
         got = io.read_series(tmp_path / "cut" / f"sample_{seed}" / "shear_series.h5")
         assert np.array_equal(one["shear_stress"], got["shear_stress"]), seed
