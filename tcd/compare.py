@@ -107,6 +107,47 @@ def run_numbers(samples: list) -> dict:
     return out
 
 
+def sample_files(summary: dict | None) -> dict:
+    """{seed: {stage key: SHA-256}} of the files a run's samples sheared, as its summary
+    recorded them (`inputs`, since session 57; a shear from `sample = ...`)."""
+    out = {}
+    for smp in (summary or {}).get("samples") or []:
+        if isinstance(smp, dict) and isinstance(smp.get("inputs"), dict):
+            out[str(smp.get("seed"))] = {k: v.get("sha256") for k, v in smp["inputs"].items()
+                                         if isinstance(v, dict) and v.get("sha256")}
+    return out
+
+
+def sample_files_note(runs: list[dict]) -> str:
+    """The sentence saying whether the runs sheared the same sample files, seed by seed (by
+    the SHA-256 their summaries recorded), whatever the paths were spelled as; "" when fewer
+    than two runs recorded them for a common seed. Two runs of one sample path may have
+    sheared two different files (a sample made again), and two paths may name one file."""
+    recorded = []
+    for r in runs:                      # the samples compared (--seeds) that recorded theirs
+        shown = {str(s.seed) for s in r["samples"]}
+        files = {seed: f for seed, f in sample_files(r["summary"]).items() if seed in shown}
+        if files:
+            recorded.append((r["label"], files))
+    if len(recorded) < 2:
+        return ""
+    same, differ = [], []
+    for seed in sorted(set.intersection(*(set(f) for _, f in recorded)), key=figures._seed_key):
+        for stage in sorted(set.intersection(*(set(f[seed]) for _, f in recorded))):
+            digests = {f[seed][stage] for _, f in recorded}
+            (same if len(digests) == 1 else differ).append(f"{seed} ({stage})")
+    if not same and not differ:
+        return ""
+    labels = ", ".join(label for label, _ in recorded)
+    text = f"Sample files sheared, by the SHA-256 each run recorded ({labels}): "
+    parts = []
+    if same:
+        parts.append("the same files for seeds " + ", ".join(same))
+    if differ:
+        parts.append("**different files** for seeds " + ", ".join(differ))
+    return text + "; ".join(parts) + "."
+
+
 def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray]:
     """(displacement m, mean smoothed stress Pa) of a run's samples (the finished ones when
     there are any, :func:`counted`), on a common grid up to the shortest one's end."""
@@ -225,6 +266,9 @@ def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
                       "and peaks so far, from the checkpoint a `--resume` continues from; a "
                       "higher peak may come later; a run's means leave them out when it has "
                       "finished samples), by run: " + "; ".join(stopped) + "."]
+    files = sample_files_note(runs)
+    if files:
+        lines += ["", files]
     if went_on:
         lines += ["", "Runs that went on from another run's state (`tcd run --from`; up to "
                       "there their curves are that run's): " + "; ".join(went_on) + "."]
@@ -289,4 +333,5 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
         figures._save(fig, out_png.with_suffix(".pdf"), written)
 
 
-__all__ = ["compare_runs", "counted", "differing_settings", "mean_curve", "run_numbers"]
+__all__ = ["compare_runs", "counted", "differing_settings", "mean_curve", "run_numbers",
+           "sample_files", "sample_files_note"]

@@ -262,3 +262,31 @@ def test_compare_seeds_takes_the_same_samples_of_each_run(tmp_path, capsys):
     assert not (tmp_path / "none").exists()
     assert main(["compare", str(five), str(three), "--seeds", "x", "--out", str(out)]) == 2
     assert "expected comma-separated integer seeds" in capsys.readouterr().err
+
+
+def test_compare_says_whether_the_runs_sheared_the_same_sample_files(tmp_path):
+    """By the SHA-256 each run's summary recorded of the files it sheared (`inputs`): the
+    same files seed by seed whatever the paths' spelling, or different ones under one path
+    (a sample made again); nothing said when fewer than two runs recorded them."""
+    def recorded(run, digests):
+        summary = json.loads((run / "summary.json").read_text())
+        for smp in summary["samples"]:
+            smp["inputs"] = {"0:shear": {"path": f"/x/{smp['seed']}.h5", "bytes": 1,
+                                         "sha256": digests[smp["seed"]]}}
+        (run / "summary.json").write_text(json.dumps(summary))
+
+    a = _run(tmp_path, "a", [(1, 0.80e6, 2.1e-3), (2, 0.82e6, 2.2e-3)])
+    b = _run(tmp_path, "b", [(1, 0.85e6, 2.2e-3), (2, 0.86e6, 2.3e-3)], yield_=1.8)
+    out = tmp_path / "cmp"
+    compare.compare_runs([a, b], out)
+    assert "Sample files sheared" not in (out / "compare.md").read_text()   # none recorded
+    recorded(a, {1: "f1", 2: "f2"})
+    compare.compare_runs([a, b], out)
+    assert "Sample files sheared" not in (out / "compare.md").read_text()   # one run only
+    recorded(b, {1: "f1", 2: "g2"})
+    compare.compare_runs([a, b], out)
+    md = (out / "compare.md").read_text()
+    assert ("Sample files sheared, by the SHA-256 each run recorded (a, b): the same files for "
+            "seeds 1 (0:shear); **different files** for seeds 2 (0:shear).") in md, md
+    compare.compare_runs([a, b], out, seeds=[1])                # only the samples compared
+    assert "the same files for seeds 1 (0:shear)." in (out / "compare.md").read_text()
