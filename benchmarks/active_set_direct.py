@@ -68,6 +68,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))     # run from a checkout
+sys.path.insert(0, str(Path(__file__).resolve().parent))            # the other prototypes
 
 
 EPS = 1e-6
@@ -86,25 +87,23 @@ def cross_matrix(n):
 
 
 def read(sim):
+    """The contacts (c), the bonds (b) and the grains (g) as arrays: those of the other
+    prototypes (`krylov_shear.arrays`), and the bonds' half gaps (their arms)."""
     from tcd.state import get
-    ct, bd, p = sim.contacts, sim.bonds, sim.particles
-    m, nb, n = int(ct.total[None]), int(bd.total[None]), sim.n
-    c = dict(i=get(ct.i, m), j=get(ct.j, m), nrm=get(ct.normal, m), r=get(ct.impulse, m),
-             rhs=get(ct.rhs, m), mu=get(ct.mu, m))
-    b = dict(i=get(bd.i, nb), j=get(bd.j, nb), nrm=get(bd.normal, nb), r=get(bd.impulse, nb),
-             cn=get(bd.cn, nb), ct=get(bd.ct, nb), rhs_n=get(bd.rhs_n, nb),
-             rhs_t=get(bd.rhs_t, nb), state=get(bd.state, nb), hg=get(bd.half_gap, nb))
-    g = dict(v=get(p.v, n), w=get(p.w, n), rad=get(p.radius, n), im=get(p.inv_mass, n),
-             ii=get(p.inv_inertia, n), wallv=sim.wall_fields.velocity.to_numpy(), n=n)
+    from krylov_shear import arrays
+    d, b = arrays(sim)
+    c = {k: d[k] for k in ("i", "j", "nrm", "r", "rhs", "mu")}
+    b["hg"] = get(sim.bonds.half_gap, len(b["i"]))
+    g = {k: d[k] for k in ("v", "w", "rad", "im", "ii", "wallv")}
+    g["n"] = sim.n
     return c, b, g
 
 
 def write(sim, c, b, g):
-    ct, bd, p = sim.contacts, sim.bonds, sim.particles
-    for field, rows in ((ct.impulse, c["r"]), (bd.impulse, b["r"]), (p.v, g["v"]), (p.w, g["w"])):
-        full = field.to_numpy()
-        full[: len(rows)] = rows
-        field.from_numpy(full)
+    from coarse_correction import write_rows
+    for field, rows in ((sim.contacts.impulse, c["r"]), (sim.bonds.impulse, b["r"]),
+                        (sim.particles.v, g["v"]), (sim.particles.w, g["w"])):
+        write_rows(field, rows)
 
 
 def operator(c, b, g):

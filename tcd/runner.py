@@ -667,16 +667,16 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
                 d.mkdir(parents=True, exist_ok=True)
                 for stale in ("states.h5", "checkpoint.h5", "summary.json"):
                     (d / stale).unlink(missing_ok=True)
-            sims, phases = plan_shears(scenario, stage, seeds,
-                                       [stage.sample.format(seed=seed) for seed in seeds])
+            paths = [stage.sample.format(seed=seed) for seed in seeds]
+            sims, phases = plan_shears(scenario, stage, seeds, paths)
             batch = Simulation.batch(sims)
             for o in sims:
                 o.close()
             step_in_phase, next_snapshot, wall_before = 0, 0.0, 0.0
             series = [{} for _ in seeds]
             results = [{"seed": seed, "stages": {}, "wall_time_s": {}, "batched_with": seeds,
-                        "inputs": {"0:shear": io.file_record(stage.sample.format(seed=seed))}}
-                       for seed in seeds]
+                        "inputs": {"0:shear": io.file_record(path)}}
+                       for seed, path in zip(seeds, paths)]
         for res in results:
             _record_loop_mode(res)
         views = SystemView.all(batch)
@@ -952,10 +952,10 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
         stage = scn.stages[stage_idx]
         proto = PROTOCOLS[stage.kind](stage, scn, seed)
         if stage.kind == "shear" and getattr(stage, "sample", "") and sim is None:
-            sim = load_prepared(scn, stage.sample.format(seed=seed))
+            path = stage.sample.format(seed=seed)
+            sim = load_prepared(scn, path)
             # which file, with what in it: kept through a resume (the checkpoint's result)
-            result.setdefault("inputs", {})[f"{stage_idx}:shear"] = io.file_record(
-                stage.sample.format(seed=seed))
+            result.setdefault("inputs", {})[f"{stage_idx}:shear"] = io.file_record(path)
         t_stage = time.perf_counter() - result["wall_time_s"].get(f"{stage_idx}:{stage.kind}", 0.0)
         while True:
             if phase is None:
