@@ -253,30 +253,19 @@ def load_sample(seed: str, directory: Path) -> SampleCurves:
     return _curves(seed, directory, io.read_series(path), _series_attrs(path), path)
 
 
-def load_stopped_sample(seed: str, directory: Path) -> SampleCurves:
+def load_stopped_sample(seed: str, directory: Path, batch: Path | None = None) -> SampleCurves:
     """A shear stopped before its end (interrupted, or still running): its series so far,
-    from ``directory/checkpoint.h5`` (the one a `--resume` continues from), smoothed over its
+    from ``directory/checkpoint.h5`` (the one a `--resume` continues from) or, for a sample of
+    a batch (`tcd run --batch`), from the batch's checkpoint `batch`, smoothed over its
     scenario's window; `stopped` is set. Raises FileNotFoundError/ValueError when there is no
     such checkpoint, or it was written outside a shear stage."""
-    import tomllib
     path = directory / "checkpoint.h5"
-    meta, _ = io.checkpoint_meta(path)
-    try:
-        doc = tomllib.loads(meta["scenario_text"])
-        k = meta["stage"]
-        if not isinstance(k, int) or isinstance(k, bool) or k < 0:
-            raise TypeError(f"stage {k!r}")
-        stage = [st for st in doc.get("stage", []) if isinstance(st, dict)][k]
-    except (KeyError, IndexError, TypeError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"{path}: its stage cannot be read ({exc!r})") from None
-    if stage.get("kind") != "shear":
-        raise ValueError(f"{path}: written in a {stage.get('kind')!r} stage, not a shear")
-    keys = meta.get("series_keys")
-    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
-        keys = ["time", "displacement", "shear_stress"]
-    series = io.checkpoint_arrays(path, ["series/" + k for k in keys])
-    series = {k[len("series/"):]: v for k, v in series.items()}
-    window = obs.as_number(stage.get("smoothing_window_mm", DEFAULT_SMOOTHING_WINDOW * 1e3))
+    if batch is not None and not path.exists() and batch.exists():
+        series, window, meta = io.checkpoint_shear_series(batch, seed)
+        path = batch
+    else:
+        series, window, meta = io.checkpoint_shear_series(path)
+    window = obs.as_number(DEFAULT_SMOOTHING_WINDOW * 1e3 if window is None else window)
     curves = _curves(seed, directory, series, {"smoothing_window": window * 1e-3}, path)
     branch = (meta.get("result") or {}).get("branched_from")
     return dataclasses.replace(curves, stopped=True, branched_from=(
@@ -344,7 +333,8 @@ def load_run(run_dir, skipped: list | None = None, *,
     for seed, directory in _sample_dirs(run_dir, summary):
         try:
             if stopped and not (directory / SERIES_NAME).exists():
-                samples.append(load_stopped_sample(seed, directory))
+                samples.append(load_stopped_sample(seed, directory,
+                                                   run_dir / "batch_checkpoint.h5"))
             else:
                 samples.append(load_sample(seed, directory))
         except (OSError, ValueError, KeyError) as exc:

@@ -825,6 +825,43 @@ def checkpoint_arrays(path, keys) -> dict:
                 if k in group and isinstance(group[k], h5py.Dataset)}
 
 
+def checkpoint_shear_series(path, seed=None) -> tuple[dict, object, dict]:
+    """(series, smoothing_window_mm, meta) of the shear a checkpoint stopped in: its series so
+    far (column -> array, as the series file would hold them) and its shear stage's
+    `smoothing_window_mm` as the scenario it ran wrote it (None where it gave none: the
+    scenario default). `seed`: that sample's series in a batch's checkpoint
+    (batch_checkpoint.h5, `series/<seed>/`); None for one sample's checkpoint.h5.
+
+    Raises OSError when the file cannot be read, ValueError when it was written outside a
+    shear stage, does not hold that sample, or its stage cannot be told (tcd info's peak so far
+    of a stopped shear, tcd compare's curve of one)."""
+    import tomllib
+    meta, _ = checkpoint_meta(path)
+    batched = "seeds" in meta
+    try:
+        stages = [st for st in tomllib.loads(meta["scenario_text"]).get("stage", [])
+                  if isinstance(st, dict)]
+        if batched:     # a batch runs a scenario whose only stage is a shear
+            if seed is None or int(seed) not in meta["seeds"]:
+                raise ValueError(f"no sample {seed} in the batch of seeds {meta['seeds']}")
+            k, prefix = 0, f"series/{int(seed)}/"
+            keys = (meta.get("series_keys") or {}).get(str(int(seed)))
+        else:
+            k, keys, prefix = meta["stage"], meta.get("series_keys"), "series/"
+        if not isinstance(k, int) or isinstance(k, bool) or k < 0:
+            raise TypeError(f"stage {k!r}")
+        stage = stages[k]
+    except (KeyError, IndexError, TypeError, AttributeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{os.fspath(path)}: its stage cannot be read ({exc!r})") from None
+    if stage.get("kind") != "shear":
+        raise ValueError(f"{os.fspath(path)}: written in a {stage.get('kind')!r} stage, not a shear")
+    if not isinstance(keys, list) or not all(isinstance(key, str) for key in keys):
+        keys = ["time", "displacement", "shear_stress"]
+    series = checkpoint_arrays(path, [prefix + key for key in keys])
+    return ({key[len(prefix):]: v for key, v in series.items()},
+            stage.get("smoothing_window_mm"), meta)
+
+
 # --- summary ---------------------------------------------------------------------------------
 def info(path) -> str:
     """A readable multi-line summary of a tcd states, series or checkpoint file."""

@@ -442,12 +442,6 @@ def run_info(out) -> str:
         raise ValueError(f"{stored}: cannot be read ({exc})") from None
     stage_docs = [st for st in doc.get("stage", []) if isinstance(st, dict)]
     stages = [st.get("kind", "?") for st in stage_docs]
-    # each shear stage's smoothing window (m), for the peak so far of a stopped shear
-    # the scenario default, as figures.DEFAULT_SMOOTHING_WINDOW (figures loads matplotlib)
-    default_window = ShearStage.model_fields["smoothing_window_mm"].default
-    windows = {k: w * 1e-3 for k, st in enumerate(stage_docs) if st.get("kind") == "shear"
-               for w in [st.get("smoothing_window_mm", default_window)]
-               if isinstance(w, (int, float))}
     seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
     seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
@@ -471,10 +465,9 @@ def run_info(out) -> str:
         if summary.is_file():
             text = _done_line(summary)
         elif ck.is_file():
-            text = _checkpoint_line(ck, stages, live=bool(holder), windows=windows)
+            text = _checkpoint_line(ck, stages, live=bool(holder))
         elif batch.is_file() and d.is_dir():
-            text = "in the batch (above)" + (_shear_so_far(batch, windows[0], f"series/{seed}/")
-                                             if 0 in windows else "")
+            text = "in the batch (above)" + _shear_so_far(batch, seed)
         elif (d / "states.h5").is_file():
             text = "started, no checkpoint yet"
         else:
@@ -545,27 +538,27 @@ def _branch_note(result) -> str:
         return ""
 
 
-def _shear_so_far(path: pathlib.Path, window: float, prefix: str = "series/") -> str:
-    """'; the ring at D mm, S MPa, peak so far P MPa at Dp mm' from the series a shear's
-    checkpoint holds under `prefix` (a batch's: series/<seed>/), its stress smoothed over
-    `window` m as the summary's peak; "" when it holds none."""
+def _shear_so_far(path: pathlib.Path, seed: int | None = None) -> str:
+    """'; the ring at D mm, S MPa, peak so far P MPa at Dp mm' from the series of the shear a
+    checkpoint stopped in (a batch's: that of sample `seed`), its stress smoothed over its
+    stage's window as the summary's peak; "" when it holds none, or stopped in another stage."""
     try:
-        keys = (prefix + "displacement", prefix + "shear_stress")
-        series = io.checkpoint_arrays(path, keys)
-        d, tau = series[keys[0]], series[keys[1]]
-        peak, at, _ = obs.peak_of(d, tau, window)
+        series, window, _ = io.checkpoint_shear_series(path, seed)
+        if window is None:      # the scenario default (figures.DEFAULT_SMOOTHING_WINDOW)
+            window = ShearStage.model_fields["smoothing_window_mm"].default
+        d, tau = series["displacement"], series["shear_stress"]
+        peak, at, _ = obs.peak_of(d, tau, float(window) * 1e-3)
         return (f"; the ring at {d[-1] * 1e3:.3f} mm, {tau[-1] / 1e6:.4g} MPa, peak so far "
                 f"{peak / 1e6:.4g} MPa at {at * 1e3:.3g} mm")
-    except (OSError, ValueError, KeyError, IndexError):
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
         return ""
 
 
 def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
-                     live: bool = False, windows: dict | None = None) -> str:
+                     live: bool = False) -> str:
     """Where the checkpoint at `path` stands: "stopped in ...", or, while a process writes
     into the run (`live`), "running, its last checkpoint in ..."; a shear stage's line adds
-    the ring's travel, the stress and the peak so far (`windows`: stage index -> smoothing
-    window, m)."""
+    the ring's travel, the stress and the peak so far."""
     try:
         meta, created = io.checkpoint_meta(path)
         if batched:
@@ -588,8 +581,8 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
         elif isinstance(meta.get("phase_index"), int):     # between two phases
             text += f", before its phase {meta['phase_index'] + 1}"
         text += f", t = {float(meta['time']):.4f} s"
-        if not batched and k in (windows or {}):
-            text += _shear_so_far(path, windows[k])
+        if not batched:
+            text += _shear_so_far(path)
         text += f"; checkpoint {path.name} written {created or '?'}"
         return text + ("" if batched else _branch_note(meta.get("result")))
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:

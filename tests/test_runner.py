@@ -601,6 +601,15 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
         assert (f"sample_{seed}: in the batch (above); the ring at {d[-1] * 1e3:.3f} mm, "
                 f"{tau[-1] / 1e6:.4g} MPa, peak so far {peak / 1e6:.4g} MPa at {at * 1e3:.3g} "
                 "mm\n") in info, info
+    # `tcd compare` on the batch under way: each sample's curve so far, from the batch's checkpoint
+    from tcd import figures
+    _, so_far = figures.load_run(tmp_path / "cut", stopped=True)
+    assert sorted((s.seed, s.stopped) for s in so_far) == [("3", True), ("4", True)]
+    for s in so_far:
+        assert np.array_equal(s.stress, arrays[f"series/{s.seed}/shear_stress"]), s.seed
+        assert s.window == pytest.approx(window)
+    with pytest.raises(ValueError, match=r"no sample 5 in the batch of seeds \[3, 4\]"):
+        io.checkpoint_shear_series(tmp_path / "cut" / "batch_checkpoint.h5", 5)
     monkeypatch.undo()
     assert run_tcd(["run", str(pair), "--out", str(tmp_path / "cut"), "--batch", "--resume"]) == 0
     resumed = json.loads((tmp_path / "cut" / "summary.json").read_text())
