@@ -251,8 +251,9 @@ def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
                 went_on.append(f"{r['label']} (seed {seed}) " + io.branch_origin(record))
             except (KeyError, IndexError, TypeError, ValueError):
                 continue
-    stopped = [f"{r['label']} (seed {s.seed} at {float(s.displacement.max()) * 1e3:.3f} mm)"
-               for r in runs for s in r["samples"] if s.stopped]
+    stopped = [f"{r['label']} ({', '.join(where)})" for r in runs
+               for where in [[f"seed {s.seed} at {float(s.displacement.max()) * 1e3:.3f} mm"
+                              for s in r["samples"] if s.stopped]] if where]
     # (a stopped shear's curve ends where it stopped: listed below, not here)
     ends = [(r["label"], [str(s.seed) for s in r["samples"] if s.peak_at_end and not s.stopped])
             for r in runs]

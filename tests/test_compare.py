@@ -188,6 +188,11 @@ def test_compare_draws_a_stopped_shear_as_far_as_its_checkpoint_goes(tmp_path):
     assert curves.branched_from["run"] == "/runs/base"
     with pytest.raises(ValueError, match="no usable sample"):
         figures.load_run(stopped, [])
+    # two stopped shears of one run: listed together under its label
+    _stopped_checkpoint(stopped, 5, stage=1, rows=200)
+    compare.compare_runs([done, stopped], out, labels=["done", "cut"])
+    md = (out / "compare.md").read_text()
+    assert "by run: cut (seed 4 at 2.000 mm, seed 5 at 2.000 mm)." in md, md
     # written while the sample was prepared: no shear curve to draw
     prep = tmp_path / "prep"
     _stopped_checkpoint(prep, 5, stage=0)
