@@ -854,7 +854,8 @@ def checkpoint_shear_series(path, seed=None) -> tuple[dict, object, dict]:
     except (KeyError, IndexError, TypeError, AttributeError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{os.fspath(path)}: its stage cannot be read ({exc!r})") from None
     if stage.get("kind") != "shear":
-        raise ValueError(f"{os.fspath(path)}: written in a {stage.get('kind')!r} stage, not a shear")
+        raise ValueError(f"{os.fspath(path)}: written in a {stage.get('kind')!r} stage, "
+                         "not a shear")
     if not isinstance(keys, list) or not all(isinstance(key, str) for key in keys):
         keys = ["time", "displacement", "shear_stress"]
     series = checkpoint_arrays(path, [prefix + key for key in keys])
