@@ -140,6 +140,8 @@ def _resume_command(args) -> str:
         words += ["--precision", args.precision]
     if getattr(args, "seeds", None):
         words += ["--seeds", ",".join(map(str, args.seeds))]
+    for text in getattr(args, "set", None) or []:
+        words += ["--set", text]
     if getattr(args, "jobs", 1) > 1:
         words += ["--jobs", str(args.jobs)]
     if getattr(args, "batch", False):
@@ -149,7 +151,9 @@ def _resume_command(args) -> str:
 
 def cmd_run(args) -> int:
     from .config import load_scenario
-    scenario = load_scenario(args.scenario).with_overrides(arch=args.arch,
+    from .config import parse_setting
+    settings = [parse_setting(text) for text in getattr(args, "set", None) or []]
+    scenario = load_scenario(args.scenario, settings).with_overrides(arch=args.arch,
                                                             precision=args.precision)
     scenario = scenario.with_seeds(args.seeds)
     for key, reason in scenario.doubts():       # values likely in another unit: run as written
@@ -514,6 +518,16 @@ def _seed_list(text: str) -> list:
     return seeds
 
 
+def _setting(text: str) -> str:
+    """A `--set KEY=VALUE` as given (checked here; applied by config.apply_settings)."""
+    from .config import parse_setting
+    try:
+        parse_setting(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -564,6 +578,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only these of the scenario's seeds (e.g. to split a study across "
                         "invocations; the summary then holds these samples, and with --resume "
                         "every sample finished in the --out directory)")
+    p.add_argument("--set", action="append", type=_setting, metavar="KEY=VALUE",
+                   help="set a scenario key for this run, without editing the file (repeat for "
+                        "several): e.g. --set bond.yield_stress_MPa=1.6 --set "
+                        "solver.tolerance=1e-6 --set stage[1].displacement_mm=1.0 (a stage "
+                        "counted from 1; VALUE a TOML value or a bare word). The run's stored "
+                        "scenario.toml holds the result; --resume needs the same --set")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint) "

@@ -659,9 +659,101 @@ class Scenario(_Model):
         return self.model_copy(update={"seeds": list(seeds)})
 
 
+# --- settings from the command line (tcd run --set KEY=VALUE) --------------------------------
+_SET_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(\[[1-9][0-9]*\])?")
+
+
+def parse_setting(text: str) -> tuple[str, object]:
+    """`KEY=VALUE` of `tcd run --set` as (KEY, value): VALUE read as a TOML value (1.6, 1e-6,
+    true, [2, 3], "text"), or else taken as a bare string (forward). Raises ValueError naming
+    what is wrong."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip(), raw.strip()
+    if not sep or not key or not raw:
+        raise ValueError(f"expected KEY=VALUE (e.g. bond.yield_stress_MPa=1.6), got {text!r}")
+    if not all(_SET_KEY.fullmatch(part) for part in key.split(".")):
+        raise ValueError(f"{key!r} is not a scenario key: names separated by dots, a stage as "
+                         "stage[K] counted from 1 (e.g. solver.tolerance, stage[2].displacement_mm)")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw             # a bare word: a string
+    return key, value
+
+
+def apply_settings(text: str, settings, source: str = "<string>") -> str:
+    """The scenario TOML `text` with each (KEY, value) of `settings` set (tcd run --set), its
+    comments and layout kept (tomlkit), and a first comment line naming the settings
+    (SETTINGS_HEADER, then the words of settings_words): the text the run stores and every
+    process of it reads. A key the scenario lacks is added (and then
+    checked as every key is). Raises ScenarioError naming the key that cannot be set."""
+    import tomlkit
+    settings = list(settings)
+    if not settings:
+        return text
+    try:
+        doc = tomlkit.parse(text.removeprefix("\ufeff"))
+    except Exception as exc:        # tomlkit's ParseError: as tomllib would report it
+        parse_scenario(text, source, resolve_samples=False)
+        raise ScenarioError(source, [("", f"malformed TOML: {exc}")]) from None
+    problems = []
+    for key, value in settings:
+        table, parts = doc, key.split(".")
+        try:
+            for depth, part in enumerate(parts):
+                name, _, index = part.partition("[")
+                last = depth == len(parts) - 1
+                if index:
+                    k = int(index.rstrip("]"))
+                    items = table.get(name) if hasattr(table, "get") else None
+                    if not isinstance(items, list) or not 1 <= k <= len(items):
+                        count = len(items) if isinstance(items, list) else 0
+                        raise KeyError(f"no {name}[{k}]: the scenario has {count} "
+                                       f"[[{name}]] table{'' if count == 1 else 's'}")
+                    if last:
+                        items[k - 1] = value
+                    else:
+                        table = items[k - 1]
+                elif last:
+                    table[name] = value
+                else:
+                    if name not in table:
+                        table[name] = tomlkit.table()
+                    table = table[name]
+                if not last and isinstance(table, list):
+                    raise KeyError(f"{name} holds [[{name}]] tables: name one as {name}[K], "
+                                   "counted from 1")
+                if not last and not hasattr(table, "get"):
+                    raise KeyError(f"{'.'.join(parts[:depth + 1])} is a value, not a table")
+        except KeyError as exc:
+            problems.append((key, f"--set: {exc.args[0]}"))
+    if problems:
+        raise ScenarioError(source, problems)
+    return f"{SETTINGS_HEADER}{settings_words(settings)}\n" + tomlkit.dumps(doc)
+
+
+#: the first line of a scenario text with `tcd run --set` settings applied, before the words
+SETTINGS_HEADER = "# tcd run with "
+
+
+def settings_words(settings) -> str:
+    """`--set KEY=VALUE ...` of (KEY, value) pairs, quoted for a POSIX shell."""
+    import shlex
+    import tomlkit
+    return shlex.join(word for key, value in settings
+                      for word in ("--set", f"{key}={tomlkit.item(value).as_string()}"))
+
+
+def text_settings(text: str) -> str:
+    """The `--set ...` words a stored scenario text was made with ("" when none)."""
+    first = text.partition("\n")[0]
+    return first[len(SETTINGS_HEADER):].strip() if first.startswith(SETTINGS_HEADER) else ""
+
+
 # --- parsing -----------------------------------------------------------------------------------
-def load_scenario(path) -> Scenario:
-    """Read and validate the scenario file at `path` (see parse_scenario)."""
+def load_scenario(path, settings=()) -> Scenario:
+    """Read and validate the scenario file at `path` (see parse_scenario), with `settings`
+    ((KEY, value) pairs of `tcd run --set`) applied first (apply_settings)."""
     source = os.fspath(path)
     try:
         raw = Path(source).read_bytes()
@@ -677,7 +769,7 @@ def load_scenario(path) -> Scenario:
     except UnicodeDecodeError as exc:
         raise ScenarioError(source, [("", f"not UTF-8 text (byte {exc.start}): TOML files "
                                           f"are UTF-8")]) from None
-    return parse_scenario(text, source)
+    return parse_scenario(apply_settings(text, settings, source), source)
 
 
 def parse_scenario(text: str, source: str = "<string>", *, resolve_samples: bool = True) -> Scenario:

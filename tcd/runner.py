@@ -33,7 +33,7 @@ import numpy as np
 
 from . import __version__, backend, io
 from . import observables as obs
-from .config import ShearStage
+from .config import ShearStage, text_settings
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
 from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
@@ -442,6 +442,7 @@ def run_info(out) -> str:
         raise ValueError(f"{stored}: cannot be read ({exc})") from None
     stage_docs = [st for st in doc.get("stage", []) if isinstance(st, dict)]
     stages = [st.get("kind", "?") for st in stage_docs]
+    given = text_settings(stored.read_text(encoding="utf-8"))     # tcd run --set ...
     seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
     seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
@@ -478,7 +479,8 @@ def run_info(out) -> str:
                      "figures and Table 2)")
     else:
         lines.append("run summary: not written yet (the run has not finished; resume it with "
-                     f"`tcd run <its scenario> --out {out} --resume`)" if not holder else
+                     f"`tcd run <its scenario> --out {out}{' ' + given if given else ''} "
+                     "--resume`)" if not holder else
                      "run summary: not written yet")
     return "\n".join(lines)
 

@@ -185,6 +185,59 @@ def test_seeds_option_runs_a_subset_and_the_resume_advice_repeats_it(tmp_path, c
     assert "--seeds 4,2 --jobs 2 --resume" in err
 
 
+def test_set_option_runs_the_scenario_with_those_keys_and_the_resume_repeats_them(
+        tmp_path, capsys, stub):
+    """`tcd run S --set KEY=VALUE ...`: the run gets the scenario with those keys set (a value
+    read as TOML, a bare word as a string, a stage counted from 1), the file's comments kept and
+    a first line naming the settings; the file itself is not touched; an interruption's resume
+    command repeats them."""
+    from tcd import config
+    got = []
+
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
+        got.append(scenario)
+        raise KeyboardInterrupt
+    stub("runner", run_scenario=run_scenario)
+    path = tmp_path / "five.toml"
+    text = "# the study\nseeds = [1, 2, 3]\n" + SCENARIO.replace(
+        'kind = "shear"', 'kind = "shear"\ndisplacement_mm = 2.5   # the paper\'s')
+    path.write_text(text)
+    out_dir = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out_dir), "--set", "bond.yield_stress_MPa=1.6",
+                 "--set", "solver.tolerance=1e-6", "--set", "solver.sweep_order=forward",
+                 "--set", "stage[2].displacement_mm=1.0", "--set", "seeds=[2, 3]"]) == 130
+    (scenario,) = got
+    assert scenario.bond.yield_stress_MPa == 1.6 and scenario.solver.tolerance == 1e-6
+    assert scenario.solver.sweep_order == "forward" and scenario.seeds == (2, 3)
+    assert scenario.stages[1].displacement_mm == 1.0
+    assert scenario.stages[0].particles_per_layer == 10       # the rest as written
+    assert "# the study\n" in scenario.text and "displacement_mm = 1.0   # the paper's" in scenario.text
+    assert scenario.text.startswith(config.SETTINGS_HEADER + "--set bond.yield_stress_MPa=1.6 ")
+    assert config.text_settings(scenario.text).endswith("--set 'seeds=[2, 3]'")
+    assert config.parse_scenario(scenario.text, str(path)) == scenario      # what workers read
+    assert path.read_text() == text
+    err = capsys.readouterr().err
+    assert ("--set bond.yield_stress_MPa=1.6 --set solver.tolerance=1e-6 --set "
+            "solver.sweep_order=forward --set 'stage[2].displacement_mm=1.0' --set 'seeds=[2, 3]' "
+            "--resume") in err, err
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("bond.yeild_stress_MPa=1.6", "bond.yeild_stress_MPa: unknown key (did you mean 'yield_stress_MPa'?)"),
+    ("solver.tolerance=-1", "solver.tolerance: must be greater than 0"),
+    ("stage[3].displacement_mm=1", "stage[3].displacement_mm: --set: no stage[3]: the scenario has 2 [[stage]] tables"),
+    ("stage.displacement_mm=1", "stage.displacement_mm: --set: stage holds [[stage]] tables: name one as stage[K]"),
+    ("name.x=1", "name.x: --set: name is a value, not a table"),
+    ("tolerance", "expected KEY=VALUE"),
+    ("stage[0].x=1", "is not a scenario key"),
+])
+def test_set_option_names_what_cannot_be_set(scenario_file, tmp_path, capsys, runner_calls,
+                                             setting, message):
+    assert main(["run", str(scenario_file), "--out", str(tmp_path / "run"), "--set", setting]) == 2
+    assert message in capsys.readouterr().err and runner_calls == []
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("seeds, message", [("9", "[9] not among the scenario's seeds"),
                                              ("2,2", "repeats a seed"),
                                              ("x", "comma-separated integer seeds")])
@@ -810,3 +863,23 @@ def test_run_warns_of_a_value_likely_in_another_unit_and_runs_it(tmp_path, capsy
     err = capsys.readouterr().err
     assert f"tcd: warning: {path}: material.density: 2.6 kg/m^3" in err and "g/cm^3" in err
     assert runner_calls[0]["scenario"].material.density == 2.6
+
+
+def test_a_run_with_set_keeps_its_settings_for_resume_and_info(tmp_path):
+    """The run directory's scenario.toml is the scenario with the settings applied; a
+    --resume without them is refused, naming the key; `tcd info` of the stopped run repeats
+    them in its resume advice."""
+    from tcd import config, runner
+    path = tmp_path / "s.toml"
+    path.write_text(SCENARIO)
+    plain = config.load_scenario(path)
+    setting = [config.parse_setting("bond.yield_stress_MPa=1.6")]
+    scenario = config.load_scenario(path, setting)
+    out = tmp_path / "run"
+    runner.record_scenario(scenario, out, resume=False)
+    assert (out / "scenario.toml").read_text() == scenario.text
+    runner.record_scenario(config.load_scenario(path, setting), out, resume=True)   # the same
+    with pytest.raises(ValueError, match=r"bond.yield_stress_MPa: 1.6 -> 2.7"):
+        runner.record_scenario(plain, out, resume=True)
+    assert (f"resume it with `tcd run <its scenario> --out {out} --set "
+            "bond.yield_stress_MPa=1.6 --resume`") in runner.run_info(out)
