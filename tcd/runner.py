@@ -3,7 +3,8 @@
 Layout of an output directory:
     scenario.toml              copy of the scenario text (written when the run starts; a
                                --resume must bring the same scenario: record_scenario)
-    run.json                   the backend the run started on (arch, precision) and tcd's version
+    run.json                   the backend the run started on (arch, precision), tcd's version,
+                               the scenario file and the seeds it started with
     summary.json               headline numbers of the whole run (written at the end)
     sample_<seed>/states.h5    snapshots (every `output.snapshot_every` s of simulated time)
     sample_<seed>/<stage>_series.h5 (+ .csv)   per-step series of each stage
@@ -22,6 +23,7 @@ import json
 import math
 import os
 import pathlib
+import shlex
 import signal
 import socket
 import sys
@@ -422,7 +424,11 @@ def record_scenario(scenario, out: pathlib.Path, resume: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(stored) as tmp:
         pathlib.Path(tmp).write_text(scenario.text)
-    io.write_json(out / "run.json", {**backend_now, "tcd_version": __version__})
+    # the scenario file it ran (tcd info's resume advice); its settings are in scenario.toml
+    source = ({} if scenario.source.startswith("<")
+              else {"scenario_file": str(pathlib.Path(scenario.source).resolve())})
+    io.write_json(out / "run.json", {**backend_now, "tcd_version": __version__, **source,
+                                     "seeds": list(scenario.seeds)})     # (--seeds)
 
 
 def run_info(out) -> str:
@@ -448,12 +454,17 @@ def run_info(out) -> str:
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
     lines = [f"{out}: tcd run of scenario {doc.get('name', '?')!r} ({stored}): stages "
              f"{', '.join(stages) or '?'}; seeds {', '.join(map(str, seeds))}"]
+    started = {}
     try:
         started = json.loads((out / "run.json").read_text())
         lines.append(f"backend: {started.get('arch', '?')} {started.get('precision', '?')}, "
                      f"tcd {started.get('tcd_version', '?')}")
     except (OSError, ValueError, AttributeError):
         lines.append("backend: unknown (run.json missing or unreadable)")
+    scenario_file, file_note = _scenario_file(started, stored)
+    begun = started.get("seeds") if isinstance(started, dict) else None
+    if file_note:
+        lines.append(file_note)
     holder = _lock_holder(out / LOCK_FILE)
     if holder:
         lines.append(f"running now: a tcd process writes into it ({holder})")
@@ -471,6 +482,8 @@ def run_info(out) -> str:
             text = "in the batch (above)" + _shear_so_far(batch, seed)
         elif (d / "states.h5").is_file():
             text = "started, no checkpoint yet"
+        elif isinstance(begun, list) and seed not in begun:
+            text = f"not started (the run began with --seeds {','.join(map(str, begun))})"
         else:
             text = "not started"
         lines.append(f"sample_{seed}: {text}")
@@ -479,10 +492,35 @@ def run_info(out) -> str:
                      "figures and Table 2)")
     else:
         lines.append("run summary: not written yet (the run has not finished; resume it with "
-                     f"`tcd run <its scenario> --out {out}{' ' + given if given else ''} "
-                     "--resume`)" if not holder else
+                     f"`tcd run {shlex.quote(scenario_file) if scenario_file else '<its scenario>'}"
+                     f" --out {out}{' ' + given if given else ''} --resume`)" if not holder else
                      "run summary: not written yet")
     return "\n".join(lines)
+
+
+def _scenario_file(started, stored: pathlib.Path) -> tuple[str, str]:
+    """(path, note) of the scenario file a run started from, as its run.json recorded it
+    (runs since session 58): the path when that file still holds the run's scenario (with the
+    run's `--set` settings), else ""; the note says which file and, where it cannot serve a
+    --resume any more, why."""
+    from .config import ScenarioError, load_scenario, parse_setting
+    path = started.get("scenario_file") if isinstance(started, dict) else None
+    if not isinstance(path, str) or not path:
+        return "", ""
+    try:
+        text = stored.read_text(encoding="utf-8")
+        words = shlex.split(text_settings(text))
+        settings = [parse_setting(w) for w in words[1::2]]
+        changed = scenario_changes(text, load_scenario(path, settings), str(stored))
+    except ScenarioError as exc:
+        return "", f"scenario file: {path}, which cannot serve a --resume now ({exc.problems[0][1]})"
+    except (OSError, ValueError) as exc:
+        return "", f"scenario file: {path}, which cannot be read back now ({exc})"
+    if changed:
+        return "", (f"scenario file: {path}, changed since the run started "
+                    f"({io.shown_differences(changed)}): a --resume needs the run's scenario "
+                    f"({stored}) back in a file")
+    return path, f"scenario file: {path}"
 
 
 def _lock_holder(path: pathlib.Path) -> str:

@@ -881,5 +881,34 @@ def test_a_run_with_set_keeps_its_settings_for_resume_and_info(tmp_path):
     runner.record_scenario(config.load_scenario(path, setting), out, resume=True)   # the same
     with pytest.raises(ValueError, match=r"bond.yield_stress_MPa: 1.6 -> 2.7"):
         runner.record_scenario(plain, out, resume=True)
-    assert (f"resume it with `tcd run <its scenario> --out {out} --set "
-            "bond.yield_stress_MPa=1.6 --resume`") in runner.run_info(out)
+    # run.json names the scenario file: the advice gives it while it holds the run's scenario
+    assert json.loads((out / "run.json").read_text())["scenario_file"] == str(path.resolve())
+    info = runner.run_info(out)
+    assert f"\nscenario file: {path.resolve()}\n" in info, info
+    assert (f"resume it with `tcd run {path.resolve()} --out {out} --set "
+            "bond.yield_stress_MPa=1.6 --resume`") in info, info
+    path.write_text(SCENARIO.replace("particles_per_layer = 10", "particles_per_layer = 12"))
+    info = runner.run_info(out)
+    assert (f"scenario file: {path.resolve()}, changed since the run started "
+            f"(stage[1].particles_per_layer: 10 -> 12): a --resume needs the run's scenario "
+            f"({out / 'scenario.toml'}) back in a "
+            "file") in info, info
+    assert f"resume it with `tcd run <its scenario> --out {out} --set " in info, info
+    path.unlink()
+    info = runner.run_info(out)
+    assert f"scenario file: {path.resolve()}, which cannot serve a --resume now (no such " in info
+    assert f"resume it with `tcd run <its scenario> --out {out} --set " in info, info
+
+
+def test_info_tells_the_samples_a_run_was_not_asked_for(tmp_path):
+    """A run started with --seeds 2 of seeds 1-3: `tcd info` says the others were left out by
+    --seeds, not merely that they have not started."""
+    from tcd import config, runner
+    path = tmp_path / "s.toml"
+    path.write_text("seeds = [1, 2, 3]\n" + SCENARIO)
+    out = tmp_path / "run"
+    runner.record_scenario(config.load_scenario(path).with_seeds([2]), out, resume=False)
+    assert json.loads((out / "run.json").read_text())["seeds"] == [2]
+    info = runner.run_info(out)
+    assert "\nsample_1: not started (the run began with --seeds 2)\n" in info, info
+    assert "\nsample_2: not started\n" in info and "sample_3: not started (the run began" in info
