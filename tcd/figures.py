@@ -403,6 +403,17 @@ def _scenario_of(run_dir: Path) -> dict | None:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError:
             return None
+    # a relative sample path as the run read it: from the scenario file that run.json names
+    # (runs since session 58), so that two spellings of one file compare equal
+    try:
+        source = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))["scenario_file"]
+        base = Path(source).parent if isinstance(source, str) and source else None
+    except (OSError, ValueError, KeyError, TypeError):
+        base = None
+    stages = data.get("stage") if base is not None else None
+    for stage in stages if isinstance(stages, list) else []:
+        if isinstance(stage, dict) and isinstance(stage.get("sample"), str) and stage["sample"]:
+            stage["sample"] = os.path.normpath(base / stage["sample"])
     return {k: v for k, v in data.items() if k not in STUDY_FREE_KEYS}
 
 

@@ -295,3 +295,26 @@ def test_compare_says_whether_the_runs_sheared_the_same_sample_files(tmp_path):
             "seeds 1 (0:shear); **different files** for seeds 2 (0:shear).") in md, md
     compare.compare_runs([a, b], out, seeds=[1])                # only the samples compared
     assert "the same files for seeds 1 (0:shear)." in (out / "compare.md").read_text()
+
+
+def test_two_spellings_of_one_sample_file_are_one_setting(tmp_path):
+    """A run whose run.json names its scenario file (since session 58) has its relative sample
+    path read from that file's folder, as the run read it: a run of `../samples/{seed}.h5`
+    from `study/s.toml` and one of `/abs/.../samples/{seed}.h5` do not differ in the sample,
+    and `tcd figures` takes them as parts of one study."""
+    from tcd import figures
+    rel = _run(tmp_path, "rel", [(1, 0.85e6, 2.2e-3)])
+    absolute = _run(tmp_path, "abs", [(2, 0.86e6, 2.3e-3)])
+    for run, sample in ((rel, "../samples/{seed}.h5"),
+                        (absolute, str(tmp_path / "samples" / "{seed}.h5"))):
+        text = (run / "scenario.toml").read_text().replace('"{seed}.h5"', f'"{sample}"')
+        (run / "scenario.toml").write_text(text)
+    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == [
+        "stage[1].sample"]                  # no record of where the scenario file was
+    (rel / "run.json").write_text(json.dumps({"scenario_file": str(tmp_path / "study" / "s.toml")}))
+    (absolute / "run.json").write_text(json.dumps({"scenario_file": "/elsewhere/t.toml"}))
+    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == []
+    figures.check_one_study([rel, absolute])        # parts of one study: no error
+    (rel / "run.json").write_text(json.dumps({"scenario_file": str(tmp_path / "x" / "y" / "s.toml")}))
+    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == [
+        "stage[1].sample"]                  # another file: a setting that differs
