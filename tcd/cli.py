@@ -150,8 +150,7 @@ def _resume_command(args) -> str:
 
 
 def cmd_run(args) -> int:
-    from .config import load_scenario
-    from .config import parse_setting
+    from .config import load_scenario, parse_setting
     settings = [parse_setting(text) for text in getattr(args, "set", None) or []]
     scenario = load_scenario(args.scenario, settings).with_overrides(arch=args.arch,
                                                             precision=args.precision)

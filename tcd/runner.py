@@ -443,12 +443,13 @@ def run_info(out) -> str:
         raise ValueError(f"{out}: not a tcd run directory (it has no scenario.toml; `tcd info` "
                          "reads a run directory or a tcd HDF5 file)")
     try:
-        doc = tomllib.loads(stored.read_text(encoding="utf-8"))
+        stored_text = stored.read_text(encoding="utf-8")
+        doc = tomllib.loads(stored_text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{stored}: cannot be read ({exc})") from None
     stage_docs = [st for st in doc.get("stage", []) if isinstance(st, dict)]
     stages = [st.get("kind", "?") for st in stage_docs]
-    given = text_settings(stored.read_text(encoding="utf-8"))     # tcd run --set ...
+    given = text_settings(stored_text)      # tcd run --set ...
     seeds = [s for s in doc.get("seeds", [1]) if isinstance(s, int)]
     seeds += sorted(int(d.name[7:]) for d in out.glob("sample_*")
                     if d.is_dir() and d.name[7:].isdigit() and int(d.name[7:]) not in seeds)
@@ -461,7 +462,7 @@ def run_info(out) -> str:
                      f"tcd {started.get('tcd_version', '?')}")
     except (OSError, ValueError, AttributeError):
         lines.append("backend: unknown (run.json missing or unreadable)")
-    scenario_file, file_note = _scenario_file(started, stored)
+    scenario_file, file_note = _scenario_file(started, stored, stored_text)
     begun = started.get("seeds") if isinstance(started, dict) else None
     if file_note:
         lines.append(file_note)
@@ -498,17 +499,16 @@ def run_info(out) -> str:
     return "\n".join(lines)
 
 
-def _scenario_file(started, stored: pathlib.Path) -> tuple[str, str]:
-    """(path, note) of the scenario file a run started from, as its run.json recorded it
-    (runs since session 58): the path when that file still holds the run's scenario (with the
-    run's `--set` settings), else ""; the note says which file and, where it cannot serve a
-    --resume any more, why."""
+def _scenario_file(started, stored: pathlib.Path, text: str) -> tuple[str, str]:
+    """(path, note) of the scenario file a run started from, as its run.json (`started`)
+    recorded it (runs since session 58): the path when that file still holds the run's
+    scenario (`text`, read from `stored`, with the run's `--set` settings), else ""; the note
+    says which file and, where it cannot serve a --resume any more, why."""
     from .config import ScenarioError, load_scenario, parse_setting
     path = started.get("scenario_file") if isinstance(started, dict) else None
     if not isinstance(path, str) or not path:
         return "", ""
     try:
-        text = stored.read_text(encoding="utf-8")
         words = shlex.split(text_settings(text))
         settings = [parse_setting(w) for w in words[1::2]]
         changed = scenario_changes(text, load_scenario(path, settings), str(stored))
