@@ -494,7 +494,8 @@ def run_info(out) -> str:
     else:
         lines.append("run summary: not written yet (the run has not finished; resume it with "
                      f"`tcd run {shlex.quote(scenario_file) if scenario_file else '<its scenario>'}"
-                     f" --out {out}{' ' + given if given else ''} --resume`)" if not holder else
+                     f" --out {out}{' ' + given if given else ''}"
+                     f"{' --batch' if batch.is_file() else ''} --resume`)" if not holder else
                      "run summary: not written yet")
     return "\n".join(lines)
 

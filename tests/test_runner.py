@@ -590,6 +590,7 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     assert not (tmp_path / "cut" / "summary.json").exists()
     _, meta = io.load_checkpoint(tmp_path / "cut" / "batch_checkpoint.h5")
     info = runner.run_info(tmp_path / "cut")            # `tcd info RUN_DIR`
+    assert f"--out {tmp_path / 'cut'} --batch --resume`)" in info, info
     assert (f"batch: stopped in the shear of seeds 3, 4, phase {meta['phases'][0]['name']!r} at "
             f"step {meta['step_in_phase']} of {meta['phases'][0]['steps']}, t = ") in info, info
     arrays, _ = io.load_checkpoint(tmp_path / "cut" / "batch_checkpoint.h5")
