@@ -197,7 +197,9 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
                 raise ValueError(f"{run_dir}: none of the seeds {asked} (its samples: "
                                  f"{', '.join(have)})")
         runs.append({"label": label, "dir": run_dir, "summary": summary, "samples": samples,
-                     "scenario": figures._scenario_of(run_dir), **run_numbers(samples)})
+                     **run_numbers(samples)})
+    for r, scenario in zip(runs, figures.scenarios_of([r["dir"] for r in runs])):
+        r["scenario"] = scenario
     keys = differing_settings([r["scenario"] for r in runs])
     for r in runs:
         flat = _flat(r["scenario"]) if r["scenario"] is not None else {}

@@ -403,18 +403,34 @@ def _scenario_of(run_dir: Path) -> dict | None:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError:
             return None
-    # a relative sample path as the run read it: from the scenario file that run.json names
-    # (runs since session 58), so that two spellings of one file compare equal
+    return {k: v for k, v in data.items() if k not in STUDY_FREE_KEYS}
+
+
+def _scenario_base(run_dir: Path) -> Path | None:
+    """The folder of the scenario file the run read, as its run.json names it (runs since
+    session 58; None before): where its relative sample paths lead."""
     try:
         source = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))["scenario_file"]
-        base = Path(source).parent if isinstance(source, str) and source else None
     except (OSError, ValueError, KeyError, TypeError):
-        base = None
-    stages = data.get("stage") if base is not None else None
-    for stage in stages if isinstance(stages, list) else []:
-        if isinstance(stage, dict) and isinstance(stage.get("sample"), str) and stage["sample"]:
-            stage["sample"] = os.path.normpath(base / stage["sample"])
-    return {k: v for k, v in data.items() if k not in STUDY_FREE_KEYS}
+        return None
+    return Path(source).parent if isinstance(source, str) and source else None
+
+
+def scenarios_of(run_dirs) -> list[dict | None]:
+    """:func:`_scenario_of` of each run, to compare them: where every run names the scenario
+    file it read (run.json, since session 58), a relative sample path is read from that file's
+    folder, as the run read it, so that two spellings of one file are one setting; else every
+    path is compared as written (an older run's folder is not known)."""
+    scenarios = [_scenario_of(Path(d)) for d in run_dirs]
+    bases = [_scenario_base(Path(d)) for d in run_dirs]
+    if any(b is None for b, sc in zip(bases, scenarios) if sc is not None):
+        return scenarios
+    for base, scenario in zip(bases, scenarios):
+        stages = (scenario or {}).get("stage")
+        for stage in stages if isinstance(stages, list) else []:
+            if isinstance(stage, dict) and isinstance(stage.get("sample"), str) and stage["sample"]:
+                stage["sample"] = os.path.normpath(base / stage["sample"])
+    return scenarios
 
 
 def _backend_of(run_dir: Path) -> dict | None:
@@ -432,9 +448,9 @@ def check_one_study(run_dirs: list[Path]) -> None:
     first run's (:data:`STUDY_FREE_KEYS` aside) raises ValueError naming what differs; runs on
     different backends, or without a readable scenario.toml, give a FigureWarning."""
     first = run_dirs[0]
-    reference, backend = _scenario_of(first), _backend_of(first)
-    for other in run_dirs[1:]:
-        scenario = _scenario_of(other)
+    reference, *others = scenarios_of(run_dirs)
+    backend = _backend_of(first)
+    for other, scenario in zip(run_dirs[1:], others):
         if reference is None or scenario is None:
             missing = first if reference is None else other
             warnings.warn(f"{missing / 'scenario.toml'} missing or unreadable: cannot check that "

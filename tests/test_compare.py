@@ -309,12 +309,24 @@ def test_two_spellings_of_one_sample_file_are_one_setting(tmp_path):
                         (absolute, str(tmp_path / "samples" / "{seed}.h5"))):
         text = (run / "scenario.toml").read_text().replace('"{seed}.h5"', f'"{sample}"')
         (run / "scenario.toml").write_text(text)
-    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == [
+    both = (rel, absolute)
+    assert compare.differing_settings(figures.scenarios_of(both)) == [
         "stage[1].sample"]                  # no record of where the scenario file was
     (rel / "run.json").write_text(json.dumps({"scenario_file": str(tmp_path / "study" / "s.toml")}))
+    assert compare.differing_settings(figures.scenarios_of(both)) == [
+        "stage[1].sample"]                  # one run's folder alone: each as written
     (absolute / "run.json").write_text(json.dumps({"scenario_file": "/elsewhere/t.toml"}))
-    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == []
-    figures.check_one_study([rel, absolute])        # parts of one study: no error
+    assert compare.differing_settings(figures.scenarios_of(both)) == []
+    figures.check_one_study(list(both))     # parts of one study: no error
+    compare.compare_runs(list(both), tmp_path / "cmp")
+    assert "| stage[1].sample |" not in (tmp_path / "cmp" / "compare.md").read_text()
     (rel / "run.json").write_text(json.dumps({"scenario_file": str(tmp_path / "x" / "y" / "s.toml")}))
-    assert compare.differing_settings([figures._scenario_of(r) for r in (rel, absolute)]) == [
+    assert compare.differing_settings(figures.scenarios_of(both)) == [
         "stage[1].sample"]                  # another file: a setting that differs
+    with pytest.raises(ValueError, match="ran another scenario"):
+        figures.check_one_study(list(both))
+    # an older part (no record) and a newer one of one study, the same relative path as
+    # written: still one study, as before the record
+    (absolute / "scenario.toml").write_text((rel / "scenario.toml").read_text())
+    (absolute / "run.json").write_text("{}")
+    figures.check_one_study(list(both))
