@@ -202,8 +202,14 @@ def cmd_run(args) -> int:
 
 def cmd_info(args) -> int:
     if Path(args.file).is_dir():            # a run directory: the state of its samples
+        if args.set:
+            raise UsageError("--set applies to a scenario file (tcd info SCENARIO.toml --set ...)")
         from .runner import run_info
         print(run_info(args.file))
+        return 0
+    if args.file.endswith(".toml") or args.set:   # a scenario: checked, not run
+        from .config import describe, load_scenario, parse_setting
+        print(describe(load_scenario(args.file, [parse_setting(t) for t in args.set or []])))
         return 0
     path = _existing_file(args.file)
     from . import io
@@ -585,10 +591,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "scenario.toml holds the result; --resume needs the same --set")
     p.set_defaults(handler=cmd_run)
 
-    p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint) "
-                                    "or a run directory (each sample: done, where it stopped, "
-                                    "or not started)")
-    p.add_argument("file", metavar="FILE.h5|RUN_DIR")
+    p = sub.add_parser("info", help="summarise a tcd HDF5 file (states, series, checkpoint), "
+                                    "a run directory (each sample: done, where it stopped, "
+                                    "or not started) or a scenario file (checked: what a run "
+                                    "of it would run, every setting with its defaults)")
+    p.add_argument("file", metavar="FILE.h5|RUN_DIR|SCENARIO.toml")
+    p.add_argument("--set", action="append", type=_setting, metavar="KEY=VALUE",
+                   help="a scenario file: check it with these settings, as tcd run --set would run it")
     p.set_defaults(handler=cmd_info)
 
     p = sub.add_parser("render", help="render snapshots of a states file to an image or "

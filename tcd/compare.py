@@ -29,19 +29,9 @@ IGNORED_KEYS = figures.STUDY_FREE_KEYS
 
 
 def _flat(value, prefix: str = "") -> dict:
-    """A scenario dict as {dotted key: leaf}, arrays numbered from 1 (`stage[2].wall_friction`,
-    as the scenario's own errors name them)."""
-    if isinstance(value, dict):
-        out = {}
-        for k, v in value.items():
-            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-        out = {}
-        for k, v in enumerate(value, start=1):
-            out.update(_flat(v, f"{prefix}[{k}]"))
-        return out
-    return {prefix: value}
+    """A scenario dict as {dotted key: leaf} (config.flat_keys)."""
+    from .config import flat_keys
+    return flat_keys(value, prefix)
 
 
 def differing_settings(scenarios: list[dict | None]) -> list[str]:

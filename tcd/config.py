@@ -750,6 +750,57 @@ def text_settings(text: str) -> str:
     return first[len(SETTINGS_HEADER):].strip() if first.startswith(SETTINGS_HEADER) else ""
 
 
+def flat_keys(value, prefix: str = "") -> dict:
+    """A scenario dict as {dotted key: leaf}, arrays of tables numbered from 1
+    (`stage[2].wall_friction`, as the scenario's own errors name them)."""
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(flat_keys(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {}
+        for k, v in enumerate(value, start=1):
+            out.update(flat_keys(v, f"{prefix}[{k}]"))
+        return out
+    return {prefix: value}
+
+
+def describe(scenario: "Scenario") -> str:
+    """`tcd info SCENARIO.toml`: what a run of the checked scenario would run, before it runs:
+    its seeds and stages, the sample files a shear reads, the values likely in another unit
+    (`doubts`), and every setting, defaults filled in, those the file (or --set) writes marked
+    with `*`."""
+    data = scenario.model_dump(mode="json", by_alias=True, exclude={"text", "source"})
+    try:
+        written = set(flat_keys(tomllib.loads(scenario.text)))
+    except tomllib.TOMLDecodeError:
+        written = set()
+    kinds = ", ".join(st.kind for st in scenario.stages) or "none"
+    lines = [f"{scenario.source}: a valid tcd scenario {scenario.name!r}: seeds "
+             f"{', '.join(map(str, scenario.seeds))}; stages {kinds}"]
+    for k, stage in enumerate(scenario.stages, start=1):
+        if isinstance(stage, ShearStage) and stage.sample:
+            files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
+            lines.append(f"stage[{k}] shears the sample files {stage.sample} "
+                         f"({len(files)} file{'' if len(files) == 1 else 's'}, all present)")
+    lines += [f"warning: {key}: {reason}" for key, reason in scenario.doubts()]
+    rows = [(key, value) for key, value in flat_keys(data).items()]
+    width = max((len(key) for key, _ in rows), default=0)
+    lines.append("settings (* written in the file or by --set; the others are defaults):")
+    lines += [f"{'*' if key in written else ' '} {key:<{width}}  {_shown_value(value)}"
+              for key, value in rows]
+    return "\n".join(lines)
+
+
+def _shown_value(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.12g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_shown_value(v) for v in value) + "]"
+    return str(value)
+
+
 # --- parsing -----------------------------------------------------------------------------------
 def load_scenario(path, settings=()) -> Scenario:
     """Read and validate the scenario file at `path` (see parse_scenario), with `settings`

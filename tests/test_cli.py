@@ -912,3 +912,27 @@ def test_info_tells_the_samples_a_run_was_not_asked_for(tmp_path):
     info = runner.run_info(out)
     assert "\nsample_1: not started (the run began with --seeds 2)\n" in info, info
     assert "\nsample_2: not started\n" in info and "sample_3: not started (the run began" in info
+
+
+def test_info_of_a_scenario_file_checks_it_and_lists_every_setting(tmp_path, capsys):
+    """`tcd info SCENARIO.toml [--set ...]`: the scenario checked as `tcd run` would check it,
+    nothing run: its seeds and stages, values likely in another unit, and every setting with
+    the defaults filled in, those written in the file or by --set marked."""
+    path = tmp_path / "s.toml"
+    path.write_text("seeds = [1, 2]\n" + SCENARIO + "\n[bond]\nyield_stress_MPa = 2700\n")
+    assert main(["info", str(path), "--set", "solver.tolerance=1e-6"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"{path}: a valid tcd scenario 'cli-test': seeds 1, 2; stages "
+                          "prepare, shear\n"), out
+    assert "\nwarning: bond.yield_stress_MPa: 2700 MPa is above" in out, out
+    lines = out.splitlines()
+    row = {line[2:].split()[0]: (line[0], line[2:].split(None, 1)[1]) for line in lines
+           if line[:2] in ("* ", "  ") and len(line[2:].split(None, 1)) == 2}
+    assert row["bond.yield_stress_MPa"] == ("*", "2700")
+    assert row["solver.tolerance"] == ("*", "1e-06")                # by --set
+    assert row["stage[1].particles_per_layer"] == ("*", "10")
+    assert row["solver.theta"][0] == " " and row["material.friction"] == (" ", "0.7")  # defaults
+    assert main(["info", str(path), "--set", "bond.yeild=1"]) == 2
+    assert "bond.yeild: unknown key" in capsys.readouterr().err
+    assert main(["info", str(tmp_path), "--set", "bond.yield_stress_MPa=1"]) == 2
+    assert "--set applies to a scenario file" in capsys.readouterr().err
