@@ -687,10 +687,15 @@ def apply_settings(text: str, settings, source: str = "<string>") -> str:
     (SETTINGS_HEADER, then the words of settings_words): the text the run stores and every
     process of it reads. A key the scenario lacks is added (and then
     checked as every key is). Raises ScenarioError naming the key that cannot be set."""
-    import tomlkit
     settings = list(settings)
     if not settings:
         return text
+    try:
+        import tomlkit
+    except ImportError:     # an install older than --set: its dependencies not updated
+        raise ScenarioError(source, [("", "--set needs the tomlkit package, a dependency of "
+                                          "tcd since session 58: reinstall tcd "
+                                          "(pip install -e .) or pip install tomlkit")]) from None
     try:
         doc = tomlkit.parse(text.removeprefix("\ufeff"))
     except Exception as exc:        # tomlkit's ParseError: as tomllib would report it

@@ -936,3 +936,12 @@ def test_info_of_a_scenario_file_checks_it_and_lists_every_setting(tmp_path, cap
     assert "bond.yeild: unknown key" in capsys.readouterr().err
     assert main(["info", str(tmp_path), "--set", "bond.yield_stress_MPa=1"]) == 2
     assert "--set applies to a scenario file" in capsys.readouterr().err
+
+
+def test_set_without_tomlkit_says_what_to_install(tmp_path, capsys, runner_calls, monkeypatch):
+    """A checkout updated without reinstalling lacks tomlkit: --set says so, not a traceback."""
+    path = tmp_path / "s.toml"
+    path.write_text(SCENARIO)
+    monkeypatch.setitem(sys.modules, "tomlkit", None)       # import tomlkit -> ImportError
+    assert main(["run", str(path), "--out", str(tmp_path / "run"), "--set", "seeds=[1]"]) == 2
+    assert "--set needs the tomlkit package" in capsys.readouterr().err and runner_calls == []
