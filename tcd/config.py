@@ -785,6 +785,11 @@ def describe(scenario: "Scenario") -> str:
     lines = [f"{scenario.source}: a valid tcd scenario {scenario.name!r}: seeds "
              f"{', '.join(map(str, scenario.seeds))}; stages {kinds}"]
     for k, stage in enumerate(scenario.stages, start=1):
+        if isinstance(stage, PrepareStage):
+            counts = [stage.layer_particle_count(course) for course in stage.courses]
+            lines.append(f"stage[{k}] prepares {' + '.join(map(str, counts))}"
+                         f"{f' = {sum(counts)}' if len(counts) > 1 else ''} grains a sample "
+                         f"(courses {', '.join(stage.courses)}, bottom first)")
         if isinstance(stage, ShearStage) and stage.sample:
             files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
             lines.append(f"stage[{k}] shears the sample files {stage.sample} "

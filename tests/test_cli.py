@@ -945,3 +945,12 @@ def test_set_without_tomlkit_says_what_to_install(tmp_path, capsys, runner_calls
     monkeypatch.setitem(sys.modules, "tomlkit", None)       # import tomlkit -> ImportError
     assert main(["run", str(path), "--out", str(tmp_path / "run"), "--set", "seeds=[1]"]) == 2
     assert "--set needs the tomlkit package" in capsys.readouterr().err and runner_calls == []
+
+
+def test_info_of_a_scenario_gives_the_grains_a_preparation_makes():
+    """The paper's preparation: the count per course from the size table at the packing
+    fraction (README, "The five prepared samples": 1675 + 4182)."""
+    from tcd import config
+    text = config.describe(config.load_scenario(ROOT / "scenarios" / "leutner_prepare.toml"))
+    assert ("stage[1] prepares 1675 + 4182 = 5857 grains a sample (courses binder, surface, "
+            "bottom first)") in text, text
