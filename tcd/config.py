@@ -790,10 +790,17 @@ def describe(scenario: "Scenario") -> str:
             lines.append(f"stage[{k}] prepares {' + '.join(map(str, counts))}"
                          f"{f' = {sum(counts)}' if len(counts) > 1 else ''} grains a sample "
                          f"(courses {', '.join(stage.courses)}, bottom first)")
-        if isinstance(stage, ShearStage) and stage.sample:
-            files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
-            lines.append(f"stage[{k}] shears the sample files {stage.sample} "
-                         f"({len(files)} file{'' if len(files) == 1 else 's'}, all present)")
+        if isinstance(stage, ShearStage):
+            test = (f"to {stage.displacement_mm:g} mm at {stage.velocity_mm_per_min:g} mm/min, "
+                    f"{stage.displacement_mm / stage.velocity_mm_per_min * 60 / scenario.solver.time_step:.0f}"
+                    " time steps")
+            if stage.sample:
+                files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
+                lines.append(f"stage[{k}] shears the sample files {stage.sample} "
+                             f"({len(files)} file{'' if len(files) == 1 else 's'}, all present) "
+                             + test)
+            else:
+                lines.append(f"stage[{k}] shears the sample prepared before it " + test)
     lines += [f"warning: {key}: {reason}" for key, reason in scenario.doubts()]
     rows = [(key, value) for key, value in flat_keys(data).items()]
     width = max((len(key) for key, _ in rows), default=0)

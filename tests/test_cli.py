@@ -954,3 +954,6 @@ def test_info_of_a_scenario_gives_the_grains_a_preparation_makes():
     text = config.describe(config.load_scenario(ROOT / "scenarios" / "leutner_prepare.toml"))
     assert ("stage[1] prepares 1675 + 4182 = 5857 grains a sample (courses binder, surface, "
             "bottom first)") in text, text
+    text = config.describe(config.load_scenario(ROOT / "scenarios" / "leutner.toml"))
+    assert ("stage[2] shears the sample prepared before it to 2.5 mm at 50 mm/min, 15000 time "
+            "steps") in text, text             # the study's 15000 steps
