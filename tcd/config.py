@@ -791,9 +791,9 @@ def describe(scenario: "Scenario") -> str:
                          f"{f' = {sum(counts)}' if len(counts) > 1 else ''} grains a sample "
                          f"(courses {', '.join(stage.courses)}, bottom first)")
         if isinstance(stage, ShearStage):
+            steps = stage.displacement_mm / stage.velocity_mm_per_min * 60 / scenario.solver.time_step
             test = (f"to {stage.displacement_mm:g} mm at {stage.velocity_mm_per_min:g} mm/min, "
-                    f"{stage.displacement_mm / stage.velocity_mm_per_min * 60 / scenario.solver.time_step:.0f}"
-                    " time steps")
+                    f"{steps:.0f} time steps")
             if stage.sample:
                 files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
                 lines.append(f"stage[{k}] shears the sample files {stage.sample} "
