@@ -23,21 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from . import figures, io
+from .config import flat_keys
 
 #: scenario keys that never make two runs differ in physics (names, seeds, outputs)
 IGNORED_KEYS = figures.STUDY_FREE_KEYS
 
 
-def _flat(value, prefix: str = "") -> dict:
-    """A scenario dict as {dotted key: leaf} (config.flat_keys)."""
-    from .config import flat_keys
-    return flat_keys(value, prefix)
-
-
 def differing_settings(scenarios: list[dict | None]) -> list[str]:
     """The dotted scenario keys whose values are not the same in every run (a run whose
     scenario.toml is missing is left out), in the scenarios' order."""
-    flats = [_flat(s) for s in scenarios if s is not None]
+    flats = [flat_keys(s) for s in scenarios if s is not None]
     keys = list(dict.fromkeys(k for f in flats for k in f))
     missing = object()
     return [k for k in keys if len({repr(f.get(k, missing)) for f in flats}) > 1]
@@ -192,7 +187,7 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
         r["scenario"] = scenario
     keys = differing_settings([r["scenario"] for r in runs])
     for r in runs:
-        flat = _flat(r["scenario"]) if r["scenario"] is not None else {}
+        flat = flat_keys(r["scenario"]) if r["scenario"] is not None else {}
         r["settings"] = {k: _shown(flat.get(k)) if r["scenario"] is not None else "?"
                          for k in keys}
     figures.make_folder(out_dir)

@@ -794,11 +794,10 @@ def describe(scenario: "Scenario") -> str:
             steps = stage.displacement_mm / stage.velocity_mm_per_min * 60 / scenario.solver.time_step
             test = (f"to {stage.displacement_mm:g} mm at {stage.velocity_mm_per_min:g} mm/min, "
                     f"{steps:.0f} time steps")
-            if stage.sample:
-                files = [stage.sample.format(seed=seed) for seed in scenario.seeds]
+            if stage.sample:        # one per seed, each checked by load_scenario
+                count = len(scenario.seeds)
                 lines.append(f"stage[{k}] shears the sample files {stage.sample} "
-                             f"({len(files)} file{'' if len(files) == 1 else 's'}, all present) "
-                             + test)
+                             f"({count} file{'' if count == 1 else 's'}, all present) " + test)
             else:
                 lines.append(f"stage[{k}] shears the sample prepared before it " + test)
     lines += [f"warning: {key}: {reason}" for key, reason in scenario.doubts()]

@@ -265,7 +265,7 @@ def load_stopped_sample(seed: str, directory: Path, batch: Path | None = None) -
         path = batch
     else:
         series, window, meta = io.checkpoint_shear_series(path)
-    window = obs.as_number(DEFAULT_SMOOTHING_WINDOW * 1e3 if window is None else window)
+    window = obs.as_number(window)
     curves = _curves(seed, directory, series, {"smoothing_window": window * 1e-3}, path)
     branch = (meta.get("result") or {}).get("branched_from")
     return dataclasses.replace(curves, stopped=True, branched_from=(

@@ -828,8 +828,8 @@ def checkpoint_arrays(path, keys) -> dict:
 def checkpoint_shear_series(path, seed=None) -> tuple[dict, object, dict]:
     """(series, smoothing_window_mm, meta) of the shear a checkpoint stopped in: its series so
     far (column -> array, as the series file would hold them) and its shear stage's
-    `smoothing_window_mm` as the scenario it ran wrote it (None where it gave none: the
-    scenario default). `seed`: that sample's series in a batch's checkpoint
+    `smoothing_window_mm` as the scenario it ran wrote it (the scenario default where it gave
+    none). `seed`: that sample's series in a batch's checkpoint
     (batch_checkpoint.h5, `series/<seed>/`); None for one sample's checkpoint.h5.
 
     Raises OSError when the file cannot be read, ValueError when it was written outside a
@@ -859,8 +859,9 @@ def checkpoint_shear_series(path, seed=None) -> tuple[dict, object, dict]:
     if not isinstance(keys, list) or not all(isinstance(key, str) for key in keys):
         keys = ["time", "displacement", "shear_stress"]
     series = checkpoint_arrays(path, [prefix + key for key in keys])
-    return ({key[len(prefix):]: v for key, v in series.items()},
-            stage.get("smoothing_window_mm"), meta)
+    from .config import ShearStage
+    window = stage.get("smoothing_window_mm", ShearStage.model_fields["smoothing_window_mm"].default)
+    return {key[len(prefix):]: v for key, v in series.items()}, window, meta
 
 
 # --- summary ---------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ import numpy as np
 
 from . import __version__, backend, io
 from . import observables as obs
-from .config import ShearStage, text_settings
+from .config import text_settings
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
 from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
@@ -585,8 +585,6 @@ def _shear_so_far(path: pathlib.Path, seed: int | None = None) -> str:
     stage's window as the summary's peak; "" when it holds none, or stopped in another stage."""
     try:
         series, window, _ = io.checkpoint_shear_series(path, seed)
-        if window is None:      # the scenario default (figures.DEFAULT_SMOOTHING_WINDOW)
-            window = ShearStage.model_fields["smoothing_window_mm"].default
         d, tau = series["displacement"], series["shear_stress"]
         peak, at, _ = obs.peak_of(d, tau, float(window) * 1e-3)
         return (f"; the ring at {d[-1] * 1e3:.3f} mm, {tau[-1] / 1e6:.4g} MPa, peak so far "
