@@ -342,11 +342,18 @@ def cmd_compare(args) -> int:
         raise UsageError("tcd compare needs at least two run directories (one run's figures: "
                          "tcd figures RUN_DIR)")
     labels = args.labels.split(",") if args.labels is not None else None
+    if args.fit_setting is not None and args.target_peak is None:
+        raise UsageError("--fit-setting names the setting that --target-peak fits: give "
+                         "--target-peak MPa too")
     from .compare import compare_runs
-    written = _figure_warnings_as_lines(lambda: compare_runs(run_dirs, args.out, labels,
-                                                            args.seeds))
+    report: list[str] = []
+    written = _figure_warnings_as_lines(lambda: compare_runs(
+        run_dirs, args.out, labels, args.seeds, target_peak=args.target_peak,
+        setting=args.fit_setting, report=report))
     for path in written:
         print(path)
+    for text in report:
+        print(text.replace("**", ""))
     return 0
 
 
@@ -670,6 +677,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=_seed_list, metavar="S1,S2,...",
                    help="only these samples of each run (the same samples under each setting; "
                         "default: all)")
+    p.add_argument("--target-peak", type=float, metavar="MPA",
+                   help="calibrate: the value of the numeric setting in which the runs differ "
+                        "at which the mean peak would be MPA (e.g. 0.898, the experiments'), "
+                        "interpolated between the runs that bracket it (printed and in "
+                        "compare.md)")
+    p.add_argument("--fit-setting", metavar="KEY",
+                   help="the dotted scenario key --target-peak fits, when the runs differ in "
+                        "several (e.g. bond.yield_stress_MPa)")
     p.set_defaults(handler=cmd_compare)
 
     p = sub.add_parser("view", help="interactive viewer of a states file (needs a display)")

@@ -145,13 +145,17 @@ def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray
     return grid, np.mean(curves, axis=0)
 
 
-def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
+def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
+                 setting=None, report=None) -> list[Path]:
     """Write compare.png/.pdf/.md/.csv of `run_dirs` (at least two run directories) into
     `out_dir`; `labels`: one name per run (default: each directory's name); `seeds`: only
-    these samples of each run (the same samples under two settings; default: all). Returns the
-    files written. Raises ValueError for fewer than two runs, labels that do not match them, a
-    run without a usable sample (or without any of `seeds`); FileNotFoundError for a missing
-    directory."""
+    these samples of each run (the same samples under two settings; default: all).
+    `target_peak` (MPa): also find the value of the numeric setting in which the runs differ
+    (`setting`, a dotted key, when they differ in several) at which the mean peak would be
+    that stress (:func:`calibrate`), written to compare.md and appended to the list `report`
+    when one is given. Returns the files written. Raises ValueError for fewer than two runs,
+    labels that do not match them, a run without a usable sample (or without any of `seeds`),
+    a target with no setting to fit; FileNotFoundError for a missing directory."""
     run_dirs = [Path(p) for p in run_dirs]
     if len(run_dirs) < 2:
         raise ValueError("tcd compare needs at least two run directories (one run's figures: "
@@ -190,12 +194,109 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None) -> list[Path]:
         flat = flat_keys(r["scenario"]) if r["scenario"] is not None else {}
         r["settings"] = {k: _shown(flat.get(k)) if r["scenario"] is not None else "?"
                          for k in keys}
+    fit = calibrate(runs, keys, target_peak, setting) if target_peak is not None else None
     figures.make_folder(out_dir)
     written: list[Path] = []
     _figure(runs, keys, out_dir / "compare.png", written)
-    figures._write_text(out_dir / "compare.md", table_markdown(runs, keys, seeds), written)
+    text = table_markdown(runs, keys, seeds)
+    if fit is not None:
+        text += "\n" + fit["text"] + "\n"
+        if report is not None:
+            report.append(fit["text"])
+    figures._write_text(out_dir / "compare.md", text, written)
     figures._write_text(out_dir / "compare.csv", table_csv(runs, keys), written)
     return written
+
+
+def calibrate(runs: list[dict], keys: list[str], target: float, setting: str | None = None) -> dict:
+    """The value of a numeric scenario setting at which the runs' mean peak (MPa, as in
+    compare.md) would be `target` MPa: linear interpolation between the runs whose peaks
+    bracket it, taken in the order of the setting (every crossing when the peaks are not
+    monotonic), with the peak's displacement interpolated the same way; where no two runs
+    bracket it, the least-squares line through all of them, said to be an extrapolation.
+    `setting`: the dotted key to fit (default: the one numeric key among `keys`, the settings
+    in which the runs differ). Returns {"setting", "values": [crossings], "slope" (MPa per
+    unit of the setting, least squares), "extrapolated", "text" (a paragraph with the
+    caveats: peaks so far, curves still rising, means over different samples, other settings
+    that differ)}. Raises ValueError when there is no such setting or too few runs carry it."""
+    if not (isinstance(target, (int, float)) and math.isfinite(target) and target > 0):
+        raise ValueError(f"--target-peak {target}: expected a positive stress in MPa")
+
+    def number(r, key):
+        value = flat_keys(r["scenario"]).get(key) if r["scenario"] is not None else None
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return float(value) if ok and math.isfinite(value) else None
+
+    if setting is None:
+        numeric = [k for k in keys if all(number(r, k) is not None for r in runs)]
+        if len(numeric) != 1:
+            raise ValueError(
+                "--target-peak: the runs differ in no numeric setting to fit" if not numeric else
+                f"--target-peak: the runs differ in {len(numeric)} numeric settings "
+                f"({', '.join(numeric)}): name the one to fit with --fit-setting")
+        setting = numeric[0]
+    elif setting not in keys:
+        raise ValueError(f"--fit-setting {setting}: the runs do not differ in it (they differ "
+                         f"in: {', '.join(keys) or 'nothing'})")
+    missing = [r["label"] for r in runs if number(r, setting) is None]
+    if missing:
+        raise ValueError(f"--fit-setting {setting}: not a number in the scenario of "
+                         f"{', '.join(missing)}")
+    points = sorted(((number(r, setting), r["tau_peak_MPa"], r["d_peak_mm"], r["label"])
+                     for r in runs if math.isfinite(r["tau_peak_MPa"])), key=lambda p: p[0])
+    xs = np.array([p[0] for p in points])
+    if len(set(xs.tolist())) < 2:
+        raise ValueError(f"--target-peak: fewer than two values of {setting} with a peak")
+    ys = np.array([p[1] for p in points])
+    slope, intercept = np.polyfit(xs, ys, 1)
+    values = []
+    for (x0, y0, d0, _), (x1, y1, d1, _) in zip(points, points[1:]):
+        if y0 != y1 and (y0 - target) * (y1 - target) <= 0 and x0 != x1:
+            f = (target - y0) / (y1 - y0)
+            value = (x0 + f * (x1 - x0), d0 + f * (d1 - d0))
+            if not values or not math.isclose(values[-1][0], value[0]):
+                values.append(value)
+    extrapolated = not values and slope != 0
+    if extrapolated:
+        values = [((target - intercept) / slope, math.nan)]
+    peaks = ", ".join(f"{y:.4g} MPa at {x:g} ({label})" for x, y, _, label in points)
+    text = [f"Calibration (`--target-peak {target:g}`): the runs' mean peaks against "
+            f"{setting}: {peaks}; least-squares slope {slope:.4g} MPa per unit of {setting}. "]
+    if not values:
+        text.append(f"The peaks do not change with {setting}: no value reaches {target:g} MPa.")
+    elif extrapolated:
+        text.append(f"No two runs bracket {target:g} MPa: the least-squares line reaches it at "
+                    f"{setting} = **{values[0][0]:.4g}**, an extrapolation; run that value to "
+                    "check it.")
+    else:
+        text.append(f"{'Each value' if len(values) > 1 else 'The value'} of {setting} at which "
+                    f"the mean peak would be {target:g} MPa, interpolated linearly between the "
+                    "two runs that bracket it: " + "; ".join(
+                        f"**{x:.4g}** (the peak at {d:.3g} mm)" for x, d in values) + "."
+                    + (" The peaks are not monotonic in the setting: several crossings."
+                       if len(values) > 1 else ""))
+    caveats = []
+    so_far = [r["label"] for r in runs if r["samples"] and all(s.stopped for s in counted(r["samples"]))]
+    if so_far:
+        caveats.append(f"the peaks of {', '.join(so_far)} are so far (stopped shears): a higher "
+                       "one may come")
+    rising = [r["label"] for r in runs
+              if any(s.peak_at_end and not s.stopped for s in counted(r["samples"]))]
+    if rising:
+        caveats.append(f"some curves of {', '.join(rising)} still rise at their end: those "
+                       "peaks are lower bounds")
+    sets = {tuple(sorted((str(s.seed) for s in counted(r["samples"])), key=figures._seed_key))
+            for r in runs}
+    if len(sets) > 1:
+        caveats.append("the runs' means are over different samples (`--seeds` takes the same "
+                       "ones)")
+    others = [k for k in keys if k != setting]
+    if others:
+        caveats.append(f"the runs also differ in {', '.join(others)}, which the fit ignores")
+    if caveats:
+        text.append(" Caveats: " + "; ".join(caveats) + ".")
+    return {"setting": setting, "values": [x for x, _ in values], "slope": float(slope),
+            "extrapolated": extrapolated, "text": "".join(text)}
 
 
 def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
@@ -321,5 +422,5 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
         figures._save(fig, out_png.with_suffix(".pdf"), written)
 
 
-__all__ = ["compare_runs", "counted", "differing_settings", "mean_curve", "run_numbers",
+__all__ = ["calibrate", "compare_runs", "counted", "differing_settings", "mean_curve", "run_numbers",
            "sample_files", "sample_files_note"]

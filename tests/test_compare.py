@@ -330,3 +330,67 @@ def test_two_spellings_of_one_sample_file_are_one_setting(tmp_path):
     (absolute / "scenario.toml").write_text((rel / "scenario.toml").read_text())
     (absolute / "run.json").write_text("{}")
     figures.check_one_study(list(both))
+
+
+def test_target_peak_finds_the_setting_that_gives_a_peak(tmp_path, capsys):
+    """`--target-peak`: the value of the one numeric setting the runs differ in at which the
+    mean peak would be the target, interpolated between the two runs that bracket it (their
+    peaks as compare.csv gives them), or extrapolated on the least-squares line, said so."""
+    runs = [_run(tmp_path, f"y{y}", [(1, (tau - 0.01) * 1e6, 2.0e-3), (2, (tau + 0.01) * 1e6, 2.2e-3)],
+                 yield_=y) for y, tau in ((1.5, 0.80), (1.8, 0.95), (1.6, 0.86))]
+    out = tmp_path / "cmp"
+    assert main(["compare", *map(str, runs), "--target-peak", "0.9", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    table = [line.split(",") for line in (out / "compare.csv").read_text().splitlines()]
+    rows = {row[0]: dict(zip(table[0], row)) for row in table[1:]}
+    (x0, y0, d0), (x1, y1, d1) = [(float(rows[k]["bond.yield_stress_MPa"]),
+                                   float(rows[k]["tau_peak_MPa"]), float(rows[k]["d_peak_mm"]))
+                                  for k in ("y1.6", "y1.8")]
+    assert y0 < 0.9 < y1
+    expected = x0 + (0.9 - y0) / (y1 - y0) * (x1 - x0)
+    assert "bond.yield_stress_MPa at which the mean peak would be 0.9 MPa" in printed
+    assert f"{expected:.4g} (the peak at {d0 + (0.9 - y0) / (y1 - y0) * (d1 - d0):.3g} mm)" in printed
+    assert "**" not in printed and f"**{expected:.4g}**" in (out / "compare.md").read_text()
+    assert "Caveats" not in printed                 # same seeds, finished, nothing else differs
+    from tcd import figures
+    loaded = []
+    for r in runs:
+        _, samples = figures.load_run(r)
+        loaded.append({"label": r.name, "samples": samples, **compare.run_numbers(samples),
+                       "scenario": figures.scenarios_of([r])[0]})
+    fit = compare.calibrate(loaded, ["bond.yield_stress_MPa"], 0.9)
+    assert fit["values"] == [pytest.approx(expected)] and not fit["extrapolated"]
+    slope = np.polyfit([1.5, 1.8, 1.6], [r["tau_peak_MPa"] for r in loaded], 1)[0]
+    assert fit["slope"] == pytest.approx(slope) and 0.4 < slope < 0.6
+    # beyond the runs' peaks: the least-squares line, called an extrapolation
+    high = compare.calibrate(loaded, ["bond.yield_stress_MPa"], 1.2)
+    assert high["extrapolated"] and high["values"][0] > 1.8 and "an extrapolation" in high["text"]
+    # peaks that rise and fall with the setting: every crossing
+    loaded[1]["tau_peak_MPa"] = 0.70                # 1.8 now below the target again
+    both = compare.calibrate(loaded, ["bond.yield_stress_MPa"], 0.85)
+    assert len(both["values"]) == 2 and both["values"][0] < 1.6 < both["values"][1] < 1.8
+
+
+def test_target_peak_refuses_what_it_cannot_fit(tmp_path, capsys):
+    a = _run(tmp_path, "a", [(1, 0.8e6, 2.0e-3)], yield_=1.5, friction=0.3)
+    b = _run(tmp_path, "b", [(1, 0.9e6, 2.1e-3), (2, 0.9e6, 2.1e-3)], yield_=1.7, friction=0.5)
+    same = _run(tmp_path, "same", [(1, 0.9e6, 2.1e-3)], yield_=1.5, friction=0.3)
+    out = tmp_path / "o"
+    for command, message in (
+            ([a, b, "--target-peak", "0.85"], "differ in 2 numeric settings "
+             "(bond.yield_stress_MPa, stage[1].wall_friction): name the one to fit with --fit-setting"),
+            ([a, same, "--target-peak", "0.85"], "differ in no numeric setting"),
+            ([a, b, "--target-peak", "0.85", "--fit-setting", "bond.gap_mm"],
+             "--fit-setting bond.gap_mm: the runs do not differ in it"),
+            ([a, b, "--fit-setting", "bond.yield_stress_MPa"], "give --target-peak MPa too"),
+            ([a, b, "--target-peak", "-1", "--fit-setting", "bond.yield_stress_MPa"],
+             "expected a positive stress")):
+        assert main(["compare", *map(str, command), "--out", str(out)]) == 2
+        assert message in capsys.readouterr().err
+        assert not out.exists()                     # nothing written on a refusal
+    assert main(["compare", str(a), str(b), "--target-peak", "0.85", "--fit-setting",
+                 "bond.yield_stress_MPa", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "**" not in printed and "1.6 (the peak at" in printed
+    assert ("Caveats: the runs' means are over different samples (`--seeds` takes the same ones); "
+            "the runs also differ in stage[1].wall_friction, which the fit ignores.") in printed
