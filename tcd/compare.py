@@ -197,7 +197,7 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
     fit = calibrate(runs, keys, target_peak, setting) if target_peak is not None else None
     figures.make_folder(out_dir)
     written: list[Path] = []
-    _figure(runs, keys, out_dir / "compare.png", written)
+    _figure(runs, keys, out_dir / "compare.png", written, fit=fit, target=target_peak)
     text = table_markdown(runs, keys, seeds)
     if fit is not None:
         text += "\n" + fit["text"] + "\n"
@@ -382,7 +382,8 @@ def table_csv(runs: list[dict], keys: list[str]) -> str:
     return buffer.getvalue()
 
 
-def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> None:
+def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list, fit=None,
+            target=None) -> None:
     import matplotlib
     with matplotlib.rc_context(figures._RC):
         fig = figures._new_figure(7.2, 4.2 + 0.22 * len(runs))
@@ -410,6 +411,11 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list) -> 
                         ms=6, mfc="white", mec=color, mew=1.6, ecolor=color, capsize=3, zorder=4)
         ax.plot([], [], "o", ms=6, mfc="white", mec="0.3", mew=1.6,
                 label="mean peak ± std of each run")
+        if fit is not None:
+            found = ", ".join(f"{x:.4g}" for x in fit["values"]) or "none"
+            ax.axhline(target, color="0.3", lw=0.9, ls=":", zorder=0,
+                       label=f"target peak {target:g} MPa: {fit['setting']} = {found}"
+                             + (" (extrapolated)" if fit["extrapolated"] else ""))
         ax.set_xlim(left=0.0)
         ax.set_xlabel("Imposed displacement d (mm)")
         ax.set_ylabel("Shear stress τ (MPa)")
