@@ -671,3 +671,16 @@ def test_the_tolerance_study_is_the_study_at_a_tenth_of_its_tolerance():
     study, tight = _study_and("leutner_shear_tol1e-6.toml", ("tolerance", "max_sweeps"))
     assert (tight["tolerance"], study["tolerance"]) == (1e-6, 1e-5)
     assert (tight["max_sweeps"], study["max_sweeps"]) == (200000, 5000)
+
+
+def test_the_calibrated_study_at_1e_6_is_the_tolerance_study_with_its_own_yield_stress():
+    """scenarios/leutner_shear_calibrated_1e-6.toml is leutner_shear_tol1e-6.toml but for its
+    name, description and yield stress (1.63 MPa, session 59's scan at 1e-6, against 1.7): a
+    change to the study's other settings must reach it too."""
+    tight = load_scenario(ROOT / "scenarios" / "leutner_shear_tol1e-6.toml").model_dump()
+    calibrated = load_scenario(ROOT / "scenarios" / "leutner_shear_calibrated_1e-6.toml").model_dump()
+    assert (calibrated["bond"].pop("yield_stress_MPa"), tight["bond"].pop("yield_stress_MPa")) == (1.63, 1.7)
+    for d in (tight, calibrated):
+        for key in ("name", "description", "source", "text"):
+            d.pop(key)
+    assert calibrated == tight
