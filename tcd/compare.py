@@ -272,7 +272,8 @@ def calibrate(runs: list[dict], keys: list[str], target: float, setting: str | N
         text.append(f"{'Each value' if len(values) > 1 else 'The value'} of {setting} at which "
                     f"the mean peak would be {target:g} MPa, interpolated linearly between the "
                     "two runs that bracket it: " + "; ".join(
-                        f"**{x:.4g}** (the peak at {d:.3g} mm)" for x, d in values) + "."
+                        f"**{x:.4g}**" + (f" (the peak at {d:.3g} mm)" if math.isfinite(d) else "")
+                        for x, d in values) + "."
                     + (" The peaks are not monotonic in the setting: several crossings."
                        if len(values) > 1 else ""))
     caveats = []
