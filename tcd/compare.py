@@ -197,7 +197,7 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
     fit = calibrate(runs, keys, target_peak, setting) if target_peak is not None else None
     figures.make_folder(out_dir)
     written: list[Path] = []
-    _figure(runs, keys, out_dir / "compare.png", written, fit=fit, target=target_peak)
+    _figure(runs, keys, out_dir / "compare.png", written, fit=fit)
     text = table_markdown(runs, keys, seeds)
     if fit is not None:
         text += "\n" + fit["text"] + "\n"
@@ -216,14 +216,17 @@ def calibrate(runs: list[dict], keys: list[str], target: float, setting: str | N
     bracket it, the least-squares line through all of them, said to be an extrapolation.
     `setting`: the dotted key to fit (default: the one numeric key among `keys`, the settings
     in which the runs differ). Returns {"setting", "values": [crossings], "slope" (MPa per
-    unit of the setting, least squares), "extrapolated", "text" (a paragraph with the
+    unit of the setting, least squares), "extrapolated", "target", "text" (a paragraph with the
     caveats: peaks so far, curves still rising, means over different samples, other settings
     that differ)}. Raises ValueError when there is no such setting or too few runs carry it."""
     if not (isinstance(target, (int, float)) and math.isfinite(target) and target > 0):
         raise ValueError(f"--target-peak {target}: expected a positive stress in MPa")
 
+    flats = {r["label"]: flat_keys(r["scenario"]) if r["scenario"] is not None else {}
+             for r in runs}
+
     def number(r, key):
-        value = flat_keys(r["scenario"]).get(key) if r["scenario"] is not None else None
+        value = flats[r["label"]].get(key)
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         return float(value) if ok and math.isfinite(value) else None
 
@@ -296,8 +299,8 @@ def calibrate(runs: list[dict], keys: list[str], target: float, setting: str | N
         caveats.append(f"the runs also differ in {', '.join(others)}, which the fit ignores")
     if caveats:
         text.append(" Caveats: " + "; ".join(caveats) + ".")
-    return {"setting": setting, "values": [x for x, _ in values], "slope": float(slope),
-            "extrapolated": extrapolated, "text": "".join(text)}
+    return {"setting": setting, "target": target, "values": [x for x, _ in values],
+            "slope": float(slope), "extrapolated": extrapolated, "text": "".join(text)}
 
 
 def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
@@ -383,8 +386,8 @@ def table_csv(runs: list[dict], keys: list[str]) -> str:
     return buffer.getvalue()
 
 
-def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list, fit=None,
-            target=None) -> None:
+def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list,
+            fit=None) -> None:
     import matplotlib
     with matplotlib.rc_context(figures._RC):
         fig = figures._new_figure(7.2, 4.2 + 0.22 * len(runs))
@@ -414,8 +417,8 @@ def _figure(runs: list[dict], keys: list[str], out_png: Path, written: list, fit
                 label="mean peak ± std of each run")
         if fit is not None:
             found = ", ".join(f"{x:.4g}" for x in fit["values"]) or "none"
-            ax.axhline(target, color="0.3", lw=0.9, ls=":", zorder=0,
-                       label=f"target peak {target:g} MPa: {fit['setting']} = {found}"
+            ax.axhline(fit["target"], color="0.3", lw=0.9, ls=":", zorder=0,
+                       label=f"target peak {fit['target']:g} MPa: {fit['setting']} = {found}"
                              + (" (extrapolated)" if fit["extrapolated"] else ""))
         ax.set_xlim(left=0.0)
         ax.set_xlabel("Imposed displacement d (mm)")
