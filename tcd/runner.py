@@ -39,6 +39,7 @@ from .config import text_settings
 from .state import MAX_SYSTEMS
 from .observables import PAPER_EXPERIMENT, PAPER_SIMULATION
 from .protocols import PREPARE_PHASES, PROTOCOLS, SETTLE_CHECK_EVERY, Phase, settled
+from . import signals as worker_signals
 from .signals import SignalScope
 
 FRAME_KEYS = ("particles/x", "particles/v", "particles/w", "particles/radius", "particles/layer",
@@ -207,8 +208,17 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                                              worker_threads)
                            for seed in pending}
                 with ForwardTerm(pool):
-                    for seed, future in futures.items():
-                        done[seed] = future.result()
+                    try:
+                        for seed, future in futures.items():
+                            done[seed] = future.result()
+                    except KeyboardInterrupt:
+                        # stopped (Ctrl-C, SIGTERM): the samples not handed to a worker yet are
+                        # dropped, a sample queued in a worker ends at once, not started
+                        # (_sample_job), and the running ones checkpoint and stop; their resume
+                        # runs them all. A sample queued used to start once a worker was free,
+                        # the parent waiting for it to the end (session 60).
+                        pool.shutdown(wait=True, cancel_futures=True)
+                        raise
         else:
             backend.init(scenario.backend.arch, scenario.backend.precision)
             for seed in pending:
@@ -803,6 +813,7 @@ def _watch_parent(parent: int) -> None:
     kill), the worker finishes the sample it is running (its files, then its lock) and ends.
     It used to wait for its next sample for ever, holding its memory (session 47's audit: both
     workers of a killed `--jobs 2` run still asleep minutes after their samples were done)."""
+    worker_signals.enter_worker()       # a Ctrl-C or SIGTERM between samples: none starts after
     def watch():
         while os.getppid() == parent:
             time.sleep(0.5)
@@ -813,6 +824,11 @@ def _watch_parent(parent: int) -> None:
 
 def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progress,
                 cpu_threads=None) -> dict:
+    """A sample in a `--jobs` worker; one that comes after the worker was told to stop
+    (worker_signals.stop_requested: a SIGTERM or Ctrl-C during its previous sample, or between
+    two) is not started (KeyboardInterrupt before anything is written)."""
+    if worker_signals.in_worker and worker_signals.stop_requested:
+        raise KeyboardInterrupt(f"sample {seed} not started: the run was stopped")
     with _JOB_RUNNING:
         return _run_sample_job(text, source, arch, precision, seed, sample_dir, resume,
                                progress, cpu_threads)
@@ -835,13 +851,22 @@ class DeferredInterrupt(SignalScope):
     job) during a run takes effect at the end of the current step: the step loop writes a
     checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
     where it was stopped (not from the last periodic checkpoint, or from nothing when none was
-    written yet). A second signal stops at once. Installed as SignalScope says."""
+    written yet). A second signal stops at once. Installed as SignalScope says. In a `--jobs`
+    worker the stop holds for the worker's later samples too (worker_signals), and one that
+    came before the sample began stops it at its first step."""
     signals = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
         self.pending = False
 
+    def __enter__(self):
+        super().__enter__()
+        if worker_signals.in_worker and worker_signals.stop_requested:
+            self.pending = True         # came between _sample_job's check and this handler
+        return self
+
     def _handler(self, signum, frame):
+        worker_signals.stop_requested = True    # read in --jobs workers only
         if self.pending:
             raise KeyboardInterrupt
         self.pending = True

@@ -1419,6 +1419,79 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
 
 
+
+def test_a_stopped_parallel_run_starts_none_of_its_queued_samples(micro_run, tmp_path):
+    """SIGTERM to `tcd run --jobs 2` of three samples while the first two run: both
+    checkpoint and stop, the third, queued, is not started, and the parent ends at once with
+    the resume command; the resume runs all three to the uninterrupted run's numbers. Session
+    60 found the queued sample started in the first worker freed, the parent waiting for it
+    to its end (an hour of a study's shear) without a word."""
+    from tcd.cli import EXIT_INTERRUPTED
+    scenario, out = micro_run
+    three = tmp_path / "three_seeds.toml"
+    three.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4, 5]", 1))
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(three), "--out",
+                             str(run), "--jobs", "2", "--arch", backend.arch(), "--precision",
+                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None and not all(
+                (run / f"sample_{s}" / "checkpoint.h5").exists() for s in (3, 4)):
+            time.sleep(0.1)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == EXIT_INTERRUPTED, err[-2000:]
+    assert "interrupted; resume with: " in err and "--resume" in err
+    for seed in (3, 4):             # stopped at a checkpoint, not finished
+        assert (run / f"sample_{seed}" / "checkpoint.h5").exists(), seed
+        assert not (run / f"sample_{seed}" / "summary.json").exists(), seed
+    assert not (run / "sample_5" / "states.h5").exists(), "the queued sample was started"
+    assert run_tcd(["run", str(three), "--out", str(run), "--resume"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert [smp["seed"] for smp in summary["samples"]] == [3, 4, 5]
+    a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
+    assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
+
+
+def test_a_parallel_worker_told_to_stop_starts_no_further_sample(tmp_path, monkeypatch):
+    """The worker's side of the test above, in this process: once a `--jobs` worker has had a
+    SIGTERM (between samples: its handler keeps it alive and notes it), a sample handed to it
+    ends at once, before anything is written; a sample's own handler replaces the worker's
+    and gives it back after."""
+    from tcd import runner, signals
+    monkeypatch.setattr(signals, "in_worker", False)
+    monkeypatch.setattr(signals, "stop_requested", False)
+    outer = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        signals.enter_worker()
+        assert signals.in_worker and signal.getsignal(signal.SIGTERM) is signals.note_stop
+        with runner.DeferredInterrupt() as interrupt:      # a sample running
+            assert signal.getsignal(signal.SIGTERM) == interrupt._handler
+            assert not interrupt.pending
+        assert signal.getsignal(signal.SIGTERM) is signals.note_stop
+        os.kill(os.getpid(), signal.SIGTERM)                # between samples: it lives on
+        time.sleep(0.05)
+        assert signals.stop_requested
+        with pytest.raises(KeyboardInterrupt, match="sample 7 not started"):
+            runner._sample_job("", "<none>", backend.arch(), backend.precision(), 7,
+                               str(tmp_path / "sample_7"), False, False)
+        assert not (tmp_path / "sample_7").exists()
+        with runner.DeferredInterrupt() as interrupt:       # came before its handler: pending
+            assert interrupt.pending
+    finally:
+        for s, h in outer.items():
+            signal.signal(s, h)
+
 def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_run, tmp_path,
                                                                          capsys):
     """A hard kill in a run's first minute (before its first checkpoint) left scenario.toml,
