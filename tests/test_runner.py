@@ -1375,6 +1375,24 @@ def _running(pid: int) -> bool:
     return "\nState:\tZ" not in status
 
 
+def _parallel_run_under_way(scenario, run, stderr):
+    """`tcd run SCENARIO --out RUN --jobs 2` started as a child process, returned once its
+    samples 3 and 4 have both written a checkpoint (the run still going)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(scenario), "--out",
+                             str(run), "--jobs", "2", "--arch", backend.arch(), "--precision",
+                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
+                            stderr=stderr, text=True)
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None and not all(
+            (run / f"sample_{s}" / "checkpoint.h5").exists() for s in (3, 4)):
+        time.sleep(0.1)
+    if proc.poll() is not None:
+        proc.communicate()
+        pytest.fail("the run ended before it could be interrupted")
+    return proc
+
+
 @pytest.mark.skipif(not pathlib.Path("/proc/self/status").exists(), reason="needs /proc")
 def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     """A `--jobs` run whose parent is killed hard: each worker finishes its sample, then ends.
@@ -1386,18 +1404,9 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     two = tmp_path / "two_seeds.toml"
     two.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4]", 1))
     run = tmp_path / "run"
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(two), "--out", str(run),
-                             "--jobs", "2", "--arch", backend.arch(), "--precision",
-                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = _parallel_run_under_way(two, run, subprocess.DEVNULL)
     workers = set()
     try:
-        deadline = time.time() + 240
-        while time.time() < deadline and proc.poll() is None and not all(
-                (run / f"sample_{s}" / "checkpoint.h5").exists() for s in (3, 4)):
-            time.sleep(0.1)
-        assert proc.poll() is None, "the run ended before it could be interrupted"
         for seed in (3, 4):
             holder = (run / f"sample_{seed}" / LOCK_FILE).read_text()
             workers.add(int(re.match(r"pid (\d+) ", holder).group(1)))
@@ -1431,17 +1440,8 @@ def test_a_stopped_parallel_run_starts_none_of_its_queued_samples(micro_run, tmp
     three = tmp_path / "three_seeds.toml"
     three.write_text(scenario.read_text().replace("seeds = [3]", "seeds = [3, 4, 5]", 1))
     run = tmp_path / "run"
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(three), "--out",
-                             str(run), "--jobs", "2", "--arch", backend.arch(), "--precision",
-                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    proc = _parallel_run_under_way(three, run, subprocess.PIPE)
     try:
-        deadline = time.time() + 240
-        while time.time() < deadline and proc.poll() is None and not all(
-                (run / f"sample_{s}" / "checkpoint.h5").exists() for s in (3, 4)):
-            time.sleep(0.1)
-        assert proc.poll() is None, "the run ended before it could be interrupted"
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
