@@ -827,7 +827,7 @@ def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progres
     """A sample in a `--jobs` worker; one that comes after the worker was told to stop
     (worker_signals.stop_requested: a SIGTERM or Ctrl-C during its previous sample, or between
     two) is not started (KeyboardInterrupt before anything is written)."""
-    if worker_signals.in_worker and worker_signals.stop_requested:
+    if worker_signals.stop_requested:
         raise KeyboardInterrupt(f"sample {seed} not started: the run was stopped")
     with _JOB_RUNNING:
         return _run_sample_job(text, source, arch, precision, seed, sample_dir, resume,
@@ -861,12 +861,13 @@ class DeferredInterrupt(SignalScope):
 
     def __enter__(self):
         super().__enter__()
-        if worker_signals.in_worker and worker_signals.stop_requested:
+        if worker_signals.stop_requested:
             self.pending = True         # came between _sample_job's check and this handler
         return self
 
     def _handler(self, signum, frame):
-        worker_signals.stop_requested = True    # read in --jobs workers only
+        if worker_signals.in_worker:            # the stop holds for its later samples
+            worker_signals.stop_requested = True
         if self.pending:
             raise KeyboardInterrupt
         self.pending = True

@@ -7,8 +7,9 @@ import threading
 
 #: a `tcd run --jobs` worker process (`enter_worker`): it stops taking samples once told to stop
 in_worker = False
-#: in a worker: a SIGINT or SIGTERM has come (during a sample or between two): the samples
-#: still queued for it do not start (a stopped run left them to its resume)
+#: set in a worker only (note_stop, runner.DeferredInterrupt): a SIGINT or SIGTERM has come
+#: (during a sample or between two): the samples still queued for it do not start (a stopped
+#: run left them to its resume)
 stop_requested = False
 
 

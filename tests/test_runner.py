@@ -1428,7 +1428,6 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
 
 
-
 def test_a_stopped_parallel_run_starts_none_of_its_queued_samples(micro_run, tmp_path):
     """SIGTERM to `tcd run --jobs 2` of three samples while the first two run: both
     checkpoint and stop, the third, queued, is not started, and the parent ends at once with
@@ -1491,6 +1490,7 @@ def test_a_parallel_worker_told_to_stop_starts_no_further_sample(tmp_path, monke
     finally:
         for s, h in outer.items():
             signal.signal(s, h)
+
 
 def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_run, tmp_path,
                                                                          capsys):
