@@ -97,6 +97,8 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, fast_math=fast_math, **extra)
     memoise_frontend()
+    from . import launch
+    launch.install()
     _state["arch"], _state["precision"] = arch, precision
     _state["fast_math"] = fast_math
     _state["serial_loops"] = arch == "cpu" and not parallel_loops

@@ -18,9 +18,14 @@ the same numbers as the defaults, a fraction of the compile time (see pytest_con
 """
 import os
 
-import pytest
+# Taichi, imported with pytest capturing stdout, sends every kernel's print buffer through
+# Python after every launch (taichi/lang/shell.py; 2 % of a profiled tests/test_engine.py);
+# tcd's kernels print nothing. Read when taichi is imported, so set before tcd is.
+os.environ.setdefault("TI_ENABLE_PYBUF", "0")
 
-import tcd
+import pytest  # noqa: E402
+
+import tcd  # noqa: E402
 
 # read by ti.init (Taichi takes any of its settings from TI_<NAME>)
 ADVANCED_OPTIMIZATION_ENV = "TI_ADVANCED_OPTIMIZATION"
