@@ -81,6 +81,8 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         fast_math = fast_math_setting(arch)
     if not isinstance(fast_math, bool):
         raise ValueError(f"fast_math must be True or False, got {fast_math!r}")
+    from . import launch
+    fast_launch = launch.enabled()          # a bad TCD_FAST_LAUNCH is refused before ti.init
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": cpu_threads}
@@ -97,8 +99,8 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, fast_math=fast_math, **extra)
     memoise_frontend()
-    from . import launch
-    launch.install()
+    if fast_launch:
+        launch.install()
     _state["arch"], _state["precision"] = arch, precision
     _state["fast_math"] = fast_math
     _state["serial_loops"] = arch == "cpu" and not parallel_loops

@@ -32,7 +32,6 @@ steps both ways and compares every number bit for bit).
 """
 from __future__ import annotations
 
-import os
 import weakref
 
 FAST_LAUNCH_ENV = "TCD_FAST_LAUNCH"
@@ -41,7 +40,9 @@ _state = {"installed": False, "launches": 0, "full": 0, "bypass": False}
 
 
 def enabled() -> bool:
-    return os.environ.get(FAST_LAUNCH_ENV, "1").strip() not in ("0", "false", "no", "off")
+    """TCD_FAST_LAUNCH: 1 (the default) or 0; any other value is an error that names it."""
+    from .backend import env_flag
+    return env_flag(FAST_LAUNCH_ENV, True)
 
 
 def counts() -> dict:

@@ -94,3 +94,11 @@ def test_a_scalar_of_the_wrong_type_gets_taichis_error(backend):
     with pytest.raises(ti.TaichiRuntimeTypeError):
         contacts._exclusive_scan(count, start, 8.5, 64, contacts._scan_scratch["field"])
     assert launch.counts()["full"] == full + 1
+
+
+def test_the_switch_is_0_or_1(monkeypatch):
+    monkeypatch.setenv(launch.FAST_LAUNCH_ENV, "0")
+    assert launch.enabled() is False
+    monkeypatch.setenv(launch.FAST_LAUNCH_ENV, "yes")
+    with pytest.raises(ValueError, match="TCD_FAST_LAUNCH must be 0 or 1"):
+        launch.enabled()
