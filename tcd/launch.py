@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import weakref
 
+import numpy as np
+
 FAST_LAUNCH_ENV = "TCD_FAST_LAUNCH"
 MAX_ENTRIES = 4096          # template sets remembered per kernel (then Taichi's path only)
 _state = {"installed": False, "launches": 0, "full": 0, "bypass": False}
@@ -69,12 +71,10 @@ def installed() -> bool:
 
 
 def install() -> bool:
-    """Install the short path (once; a Taichi without the pieces it uses is left alone, as is
-    every call when TCD_FAST_LAUNCH=0). Returns whether it is in place."""
+    """Install the short path (once; a Taichi without the pieces it uses is left alone).
+    `tcd.init` calls it unless TCD_FAST_LAUNCH=0. Returns whether it is in place."""
     if _state["installed"]:
         return True
-    if not enabled():
-        return False
     try:
         from taichi.lang import kernel_impl, shell
         Kernel = kernel_impl.Kernel
@@ -137,36 +137,32 @@ def install() -> bool:
             plan = plan_of(self)
             fast = self._tcd_fast = None if plan is None else (plan, {})
         runtime = self.runtime
-        if (fast is None or _state["bypass"] or kwargs or len(args) != len(fast[0]) or runtime.fwd_mode_manager
-                or runtime.target_tape):
+        if (fast is None or _state["bypass"] or kwargs or len(args) != len(fast[0])
+                or runtime.fwd_mode_manager or runtime.target_tape):
             _state["full"] += 1
             return full_call(self, *args, **kwargs)
         plan, entries = fast
+        templates = [a for p, a in zip(plan, args) if p == "t"]
         key = []
-        for p, a in zip(plan, args):
-            if p == "t":
-                if isinstance(a, immutable):
-                    key.append((type(a), a))
-                elif isinstance(a, composite):      # rebuilt per call: Taichi's path
-                    _state["full"] += 1
-                    return full_call(self, *args)
-                else:
-                    key.append(id(a))
+        for a in templates:
+            if isinstance(a, immutable):
+                key.append((type(a), a))
+            elif isinstance(a, composite):          # rebuilt per call: Taichi's path
+                _state["full"] += 1
+                return full_call(self, *args)
+            else:
+                key.append(id(a))
         key = tuple(key)
         entry = entries.get(key)
-        if entry is not None:
-            refs = entry[0]
-            for ref, (p, a) in zip(refs, ((p, a) for p, a in zip(plan, args) if p == "t")):
-                if ref is not None and ref() is not a:
-                    entry = None
-                    break
+        if entry is not None and any(ref is not None and ref() is not a
+                                     for ref, a in zip(entry[0], templates)):
+            entry = None
         if entry is None or not nothing_to_materialise(runtime):
             _state["full"] += 1
             out = full_call(self, *args)
             instance, _ = self.mapper.lookup(args)
             kernel_cpp = self.compiled_kernels[(self.func, instance, self.autodiff_mode)]
-            refs = tuple(None if isinstance(a, immutable) else _ref(a)
-                         for p, a in zip(plan, args) if p == "t")
+            refs = tuple(None if isinstance(a, immutable) else _ref(a) for a in templates)
             prog = impl.get_runtime().prog
             data = prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel_cpp)
             if len(entries) < MAX_ENTRIES:
@@ -179,12 +175,12 @@ def install() -> bool:
             if p == "t":
                 continue
             if p == "f":
-                if not isinstance(a, (float, int)) and not _numpy_number(a):
+                if not isinstance(a, (float, int, np.floating, np.integer)):
                     _state["full"] += 1
                     return full_call(self, *args)
                 ctx.set_arg_float((slot,), float(a))
             else:
-                if not isinstance(a, int) and not _numpy_integer(a):
+                if not isinstance(a, (int, np.integer)):
                     _state["full"] += 1
                     return full_call(self, *args)
                 if p == "i":
@@ -210,7 +206,6 @@ def install() -> bool:
         return ret
 
     call.__wrapped__ = full_call
-    call._tcd_fast_launch = True
     Kernel.__call__ = call
     _state["installed"] = True
     return True
@@ -224,12 +219,3 @@ def _ref(obj):
     except TypeError:
         return lambda: obj
 
-
-def _numpy_number(a) -> bool:
-    import numpy as np
-    return isinstance(a, (np.floating, np.integer))
-
-
-def _numpy_integer(a) -> bool:
-    import numpy as np
-    return isinstance(a, np.integer)
