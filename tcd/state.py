@@ -11,6 +11,7 @@ All real fields use the precision chosen by `tcd.init`.
 """
 from __future__ import annotations
 
+import itertools
 import os
 
 import numpy as np
@@ -129,14 +130,24 @@ def _real_row():
 
 
 _pool: dict = {}
+_serials = itertools.count()
 
 
 def acquire(cls, capacity: int, *args, minimum: int | None = None):
     """A container of `cls` with at least `capacity` slots, recycled when one is free (its
-    capacity class from `minimum` slots, MIN_SLOTS unless given)."""
+    capacity class from `minimum` slots, MIN_SLOTS unless given): the oldest free one of its
+    class. Taichi compiles a kernel once per set of containers it is given; handing out the
+    oldest keeps the sets together (after two simulations held at once, the next gets the
+    first one's set, whatever order they were freed in, where the last one freed of each kind
+    mixed the two sets into new ones to compile for): the suite compiled 1958 kernel instances
+    instead of 2372, 399 s instead of 465 s with an empty kernel cache (session 68)."""
     cap = capacity_class(capacity, minimum)
     free = _pool.setdefault((cls, cap) + args, [])
-    obj = free.pop() if free else cls(cap, *args)
+    if free:
+        obj = free.pop(min(range(len(free)), key=lambda k: free[k]._pool_serial))
+    else:
+        obj = cls(cap, *args)
+        obj._pool_serial = next(_serials)
     obj.reset()
     return obj
 

@@ -152,6 +152,38 @@ def test_small_simulations_share_their_fields_and_compiled_kernels():
     assert len(sk.nlgs_serial._primal.compiled_kernels) == compiled
 
 
+def test_the_pool_hands_out_its_oldest_free_containers_as_one_set():
+    """After two simulations held at once are closed, in either order, the next simulation gets
+    the first one's containers, every one of them: a kernel instance is compiled per set of
+    containers, and the pool handing out the last one freed of each kind mixed the two sets
+    (new sets of containers, new instances to compile). Kernels compiled for the first set
+    serve the third simulation without compiling again."""
+    def pile(n, seed):
+        rng = np.random.default_rng(seed)
+        r = np.full(n, 0.002)
+        x = np.column_stack([rng.uniform(-0.02, 0.02, n), rng.uniform(-0.02, 0.02, n),
+                             0.002 + 0.005 * np.arange(n)])
+        return Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                          domain=((-0.03, -0.03, 0.0), (0.03, 0.03, 0.6)))
+    names = ("particles", "wall_fields", "grid", "neighbours", "contacts", "bonds", "stats")
+    first, second = pile(5, 3), pile(7, 4)
+    first.step(1)
+    second.step(1)
+    held = {name: getattr(first, name) for name in names}
+    for name in names:
+        assert getattr(second, name) is not held[name], name
+    compiled = len(sk.step_begin._primal.compiled_kernels)
+    # the second set handed back last: the last one freed of each kind is the second's
+    first.close()
+    second.close()
+    third = pile(9, 5)
+    for name in names:
+        assert getattr(third, name) is held[name], name
+    third.step(1)
+    assert len(sk.step_begin._primal.compiled_kernels) == compiled
+    third.close()
+
+
 def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
     """The neighbour list is reused while no grain can have crossed its skin: the contacts of
     every step, built from it, are still exactly the brute-force pairs of that step."""
