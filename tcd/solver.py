@@ -529,12 +529,13 @@ def held_unknown(p: ti.template(), q, r: ti.template()):
 
 
 @ti.func
-def bonds_factor(p: ti.template(), bd: ti.template()):
+def bonds_factor(p: ti.template(), bd: ti.template(), on):
     """Per step, after bonds_prepare: (alpha, beta) of each intact bond's ends (Bonds.stiff)
     and the inverse block matrix M' + sum G_b^T K_b G_b of each particle with intact bonds
-    (Bonds.inverse; held unknowns get identity rows and columns)."""
+    (Bonds.inverse; held unknowns get identity rows and columns). `on` (0 or 1, at run time:
+    one compiled kernel for both): 0 does nothing."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
-    for b in range(bd.total[None]):
+    for b in range(bd.total[None] * on):
         if bd.state[b] == INTACT:
             i, j = bd.i[b], bd.j[b]
             ai, aj = bond_arms(p, bd, b)
@@ -545,7 +546,7 @@ def bonds_factor(p: ti.template(), bd: ti.template()):
                 1.0 / (bd.cn[b] + p.inv_mass[i]),
                 1.0 / (bd.ct[b] + p.inv_mass[i] + ai * ai * p.inv_inertia[i])])
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
-    for q in range(p.count[None]):
+    for q in range(p.count[None] * on):
         rq = p.radius[q]
         a = ti.Matrix.zero(float, 6, 6)
         count = 0
@@ -839,19 +840,20 @@ def predict(p: ti.template(), h: ti.template(), gx: ti.template(), gy: ti.templa
 
 
 @ti.func
-def _apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
+def _apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template(), on):
+    """The bonds' and contacts' impulses applied to the bodies; `on` 0 (at run time) skips it."""
     ti.loop_config(serialize=True)
-    for b in range(bd.total[None]):
+    for b in range(bd.total[None] * on):
         if bd.state[b] == INTACT:
             apply_bond_impulse(p, bd, b, bd.impulse[b])
     ti.loop_config(serialize=True)
-    for k in range(ct.total[None]):
+    for k in range(ct.total[None] * on):
         apply_impulse(p, ct.i[k], ct.j[k], ct.normal[k], ct.impulse[k])
 
 
 @ti.kernel
 def apply_warm_start(p: ti.template(), ct: ti.template(), bd: ti.template()):
-    _apply_warm_start(p, ct, bd)
+    _apply_warm_start(p, ct, bd, 1)
 
 
 @ti.func
@@ -2022,40 +2024,38 @@ def step_begin(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.te
                ct: ti.template(), alert: float, h: float, accel: float, gx: float, gy: float,
                gz: float, theta: float, t_end: float, mode: ti.i32, k_m: float, eta_m: float,
                k_k: float, eta_k: float, tangent_factor: float, extrap: float, mu: float,
-               mu_break: float, bonds: ti.template(), factor: ti.template(),
-               warm: ti.template()):
+               mu_break: float, factor: ti.i32, warm: ti.i32):
     """The step from the filling of its contact list to its warm start: contacts.contact_fill
-    (ct.total and ct.start set by the count and scan before), predict, bonds_prepare and
-    bonds_factor (`bonds`: the simulation holds bonds; `factor`: with bond blocks),
-    contacts.contact_geometry and apply_warm_start (`warm`: the schedules that do not colour
-    their items; the coloured ones warm-start colour by colour after colouring)."""
+    (ct.total and ct.start set by the count and scan before), predict, bonds_prepare (over
+    the bonds: none in a simulation without them) and bonds_factor (`factor` 1: with bond
+    blocks), contacts.contact_geometry and apply_warm_start (`warm` 1: the schedules that do
+    not colour their items; the coloured ones warm-start colour by colour after colouring).
+    The switches are run-time arguments, not template ones: one compiled instance per set of
+    containers serves a simulation with bonds and without, every schedule (they were
+    template arguments until session 68: up to four instances, each about a second of
+    compiling on the CPU; the numbers are the same bit for bit)."""
     contacts._contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
     predict(p, h, gx, gy, gz)
-    if ti.static(bonds):
-        bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                      extrap)
-        if ti.static(factor):
-            bonds_factor(p, bd)
+    bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor, extrap)
+    bonds_factor(p, bd, factor)
     contacts.contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
-    if ti.static(warm):
-        _apply_warm_start(p, ct, bd)
+    _apply_warm_start(p, ct, bd, warm)
 
 
 @ti.kernel
 def step_end(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
              h: float, theta: float, t_end: float, mode: ti.i32, k_m: float, eta_m: float,
              k_k: float, eta_k: float, tangent_factor: float, yield_stress: float, slop: float,
-             passes: ti.i32, n: ti.i32, bonds: ti.template(), project: ti.template()):
-    """The step after its sweeps: bonds_finish (`bonds`), integrate, project_overlaps
-    (`project`: `passes` passes), wall_forces and contacts.save_history (`n` particles). The
-    coloured schedules project colour by colour after this kernel: its wall forces and
-    contact history, which they used to follow, read no position and write nothing that the
-    projection reads, so the order changes no number."""
-    if ti.static(bonds):
-        bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                     yield_stress)
+             passes: ti.i32, n: ti.i32):
+    """The step after its sweeps: bonds_finish (over the bonds: none in a simulation without
+    them), integrate, project_overlaps (`passes` passes, 0 for none), wall_forces and
+    contacts.save_history (`n` particles). The coloured schedules project colour by colour
+    after this kernel (they pass 0): its wall forces and contact history, which they used to
+    follow, read no position and write nothing that the projection reads, so the order
+    changes no number."""
+    bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
+                 yield_stress)
     integrate(p, h, theta)
-    if ti.static(project):
-        project_overlaps(p, wl, ct, h, slop, passes)
+    project_overlaps(p, wl, ct, h, slop, passes)
     wall_forces(p, wl, ct, h)
     contacts.save_history(ct, n)
