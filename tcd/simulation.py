@@ -727,8 +727,8 @@ class Simulation:
                       s.time_step, self._reach_accel(), *s.gravity, s.theta,
                       self.time + s.time_step, *self._bond_law_args(),
                       s.warm_start_extrapolation, self.friction,
-                      self.bond_law.friction_after_break, int(has_bonds and s.bond_blocks),
-                      int(warm_start))
+                      self.bond_law.friction_after_break, int(has_bonds),
+                      int(has_bonds and s.bond_blocks), int(warm_start))
         return has_bonds
 
     def _step(self) -> None:
@@ -761,7 +761,7 @@ class Simulation:
         slop = s.overlap_slop * 2.0 * self.r_min
         sk.step_end(p, wl, ct, bd, h, theta, t_end, *self._bond_law_args(),
                     self.bond_law.yield_stress, slop, 0 if coloured else s.projection_passes,
-                    self.n)
+                    self.n, int(has_bonds))
         if s.projection_passes > 0 and coloured:
             for _ in range(s.projection_passes):
                 self._by_colours(colours, sk.project_overlaps_colours, p, wl, ct, bd,

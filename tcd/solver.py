@@ -2024,20 +2024,24 @@ def step_begin(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.te
                ct: ti.template(), alert: float, h: float, accel: float, gx: float, gy: float,
                gz: float, theta: float, t_end: float, mode: ti.i32, k_m: float, eta_m: float,
                k_k: float, eta_k: float, tangent_factor: float, extrap: float, mu: float,
-               mu_break: float, factor: ti.i32, warm: ti.i32):
+               mu_break: float, bonds: ti.template(), factor: ti.i32, warm: ti.i32):
     """The step from the filling of its contact list to its warm start: contacts.contact_fill
-    (ct.total and ct.start set by the count and scan before), predict, bonds_prepare (over
-    the bonds: none in a simulation without them) and bonds_factor (`factor` 1: with bond
-    blocks), contacts.contact_geometry and apply_warm_start (`warm` 1: the schedules that do
-    not colour their items; the coloured ones warm-start colour by colour after colouring).
-    The switches are run-time arguments, not template ones: one compiled instance per set of
-    containers serves a simulation with bonds and without, every schedule (they were
-    template arguments until session 68: up to four instances, each about a second of
-    compiling on the CPU; the numbers are the same bit for bit)."""
+    (ct.total and ct.start set by the count and scan before), predict, bonds_prepare and
+    bonds_factor (`bonds`, static: the simulation holds bonds; `factor` 1: with bond blocks),
+    contacts.contact_geometry and apply_warm_start (`warm` 1: the schedules that do not colour
+    their items; the coloured ones warm-start colour by colour after colouring).
+    `factor` and `warm` are run-time arguments (loop bounds times 0 or 1), not template ones:
+    one compiled instance per set of containers serves every schedule and both bond
+    relaxations (until session 68 each combination was an instance of its own, about a second
+    of compiling on the CPU; the numbers are the same bit for bit). `bonds` stays a template
+    argument: the bonds' code is most of the kernel, and a simulation without bonds (its own
+    small bond buffer, so its own instance anyway) compiles it without them, faster."""
     contacts._contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
     predict(p, h, gx, gy, gz)
-    bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor, extrap)
-    bonds_factor(p, bd, factor)
+    if ti.static(bonds):
+        bonds_prepare(p, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
+                      extrap)
+        bonds_factor(p, bd, factor)
     contacts.contact_geometry(p, wl, bd, ct, h, theta, mu, mu_break, extrap)
     _apply_warm_start(p, ct, bd, warm)
 
@@ -2046,15 +2050,16 @@ def step_begin(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.te
 def step_end(p: ti.template(), wl: ti.template(), ct: ti.template(), bd: ti.template(),
              h: float, theta: float, t_end: float, mode: ti.i32, k_m: float, eta_m: float,
              k_k: float, eta_k: float, tangent_factor: float, yield_stress: float, slop: float,
-             passes: ti.i32, n: ti.i32):
-    """The step after its sweeps: bonds_finish (over the bonds: none in a simulation without
-    them), integrate, project_overlaps (`passes` passes, 0 for none), wall_forces and
-    contacts.save_history (`n` particles). The coloured schedules project colour by colour
-    after this kernel (they pass 0): its wall forces and contact history, which they used to
-    follow, read no position and write nothing that the projection reads, so the order
-    changes no number."""
-    bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
-                 yield_stress)
+             passes: ti.i32, n: ti.i32, bonds: ti.template()):
+    """The step after its sweeps: bonds_finish (`bonds`, static, as in step_begin),
+    integrate, project_overlaps (`passes` passes, 0 for none: a run-time argument, one
+    instance for every schedule), wall_forces and contacts.save_history (`n` particles). The
+    coloured schedules project colour by colour after this kernel (they pass 0): its wall
+    forces and contact history, which they used to follow, read no position and write
+    nothing that the projection reads, so the order changes no number."""
+    if ti.static(bonds):
+        bonds_finish(p, wl, bd, h, theta, t_end, mode, k_m, eta_m, k_k, eta_k, tangent_factor,
+                     yield_stress)
     integrate(p, h, theta)
     project_overlaps(p, wl, ct, h, slop, passes)
     wall_forces(p, wl, ct, h)

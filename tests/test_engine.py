@@ -184,6 +184,33 @@ def test_the_pool_hands_out_its_oldest_free_containers_as_one_set():
     third.close()
 
 
+def test_the_step_kernels_compile_once_for_every_schedule():
+    """step_begin and step_end take their switches (warm start, bond blocks, projection) at run
+    time: a coloured simulation after a serial one, on the same pooled containers, steps with
+    the instances compiled for the serial one (its projection and warm start are switched off
+    there, done colour by colour), and moves as the serial schedule's own kernels say."""
+    def pile(schedule):
+        r = np.full(4, 0.002)
+        x = np.column_stack([np.zeros(4), np.zeros(4), 0.0021 + 0.0041 * np.arange(4)])
+        return Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                          settings=SolverSettings(schedule=schedule),
+                          domain=((-0.01, -0.01, 0.0), (0.01, 0.01, 0.03)))
+    serial = pile("serial")
+    serial.step(3)
+    kernels = (sk.step_begin._primal.compiled_kernels, sk.step_end._primal.compiled_kernels)
+    compiled = [len(k) for k in kernels]
+    x_serial = serial.positions()
+    held = serial.particles
+    serial.close()
+    coloured = pile("coloured")
+    assert coloured.particles is held
+    coloured.step(3)
+    assert [len(k) for k in kernels] == compiled
+    # a column on the floor: each contact its own colour, the same impulses as the serial sweeps
+    np.testing.assert_allclose(coloured.positions(), x_serial, rtol=0, atol=1e-12)
+    coloured.close()
+
+
 def test_neighbour_list_kept_over_steps_gives_the_brute_force_contacts():
     """The neighbour list is reused while no grain can have crossed its skin: the contacts of
     every step, built from it, are still exactly the brute-force pairs of that step."""
