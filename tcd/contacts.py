@@ -33,6 +33,7 @@ import math
 import taichi as ti
 
 from . import backend
+from .state import SCAN_MIN_CHUNK
 
 PLANE, CYLINDER = 0, 1
 
@@ -87,11 +88,11 @@ def box_cells(g: ti.template(), p: ti.template(), nb: ti.template(), i, half_ale
     return cell_of(g, p.x[i] - e), cell_of(g, p.x[i] + e)
 
 
-@ti.kernel
-def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
-              scatter: ti.template()):
+@ti.func
+def _grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: ti.template(),
+               scatter: ti.template()):
     """One walk of every particle's cells: per-bucket counts of the incidences (`scatter`
-    False), or (True, after grid_scan) each incidence written at its bucket's slots."""
+    False), or (True, after the counts' scan) each incidence written at its bucket's slots."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range(g.buckets[None]):
         g.cell_count[c] = 0
@@ -110,15 +111,30 @@ def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert:
                         g.keys[g.cell_start[b] + slot] = c
 
 
-def grid_count(p, g, nb, half_alert: float) -> None:
-    grid_walk(p, g, nb, half_alert, False)
+@ti.kernel
+def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
+              scatter: ti.template()):
+    _grid_walk(p, g, nb, half_alert, scatter)
+
+
+@ti.kernel
+def _grid_count_scan(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
+                     chunk: ti.i32) -> ti.i32:
+    _grid_walk(p, g, nb, half_alert, False)
+    _scan_loops(g.cell_count, g.cell_start, g.buckets[None], chunk, g.scan_partial)
+    return g.cell_start[g.buckets[None]]
+
+
+def grid_count(p, g, nb, half_alert: float) -> int:
+    """The per-bucket counts of the particle-cell incidences and their scan (cell_start) in one
+    launch; returns the number of incidences."""
+    return _grid_count_scan(p, g, nb, half_alert, scan_chunk(g.nbuckets))
 
 
 def grid_scatter(p, g, nb, half_alert: float) -> None:
     grid_walk(p, g, nb, half_alert, True)
 
 
-SCAN_MIN_CHUNK = 64             # entries per thread of the parallel exclusive scan, at least
 _scan_scratch = {"field": None, "size": 0}
 
 
@@ -130,12 +146,13 @@ def scan_chunk(n: int) -> int:
     return max(SCAN_MIN_CHUNK, math.isqrt(max(n, 0)) + 1)
 
 
-@ti.kernel
-def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32, chunk: ti.i32,
-                    partial: ti.template()) -> ti.i32:
+@ti.func
+def _scan_loops(count: ti.template(), start: ti.template(), n, chunk, partial: ti.template()):
     """start[k] = sum(count[:k]) for k <= n: chunk sums in parallel, their scan (serial, one
     entry per chunk), then each chunk's own scan in parallel (integers: exact, in any
-    order)."""
+    order). `partial`: at least n // chunk + 2 entries. Called at the top level of a kernel,
+    after the loop that counts (its own launch until session 68: one more launch per contact
+    list, and one more kernel instance to compile per container)."""
     ti.loop_config(serialize=ti.static(backend.serial_loops()))
     for c in range((n + chunk - 1) // chunk):
         s = 0
@@ -156,6 +173,13 @@ def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32, chunk
         for k in range(c * chunk, ti.min(n, (c + 1) * chunk)):
             start[k] = s
             s += count[k]
+
+
+@ti.kernel
+def _exclusive_scan(count: ti.template(), start: ti.template(), n: ti.i32, chunk: ti.i32,
+                    partial: ti.template()) -> ti.i32:
+    """start[k] = sum(count[:k]) for k <= n (_scan_loops) alone."""
+    _scan_loops(count, start, n, chunk, partial)
     return start[n]
 
 
@@ -170,11 +194,6 @@ def exclusive_scan(count, start, n: int) -> int:
         _scan_scratch["field"] = ti.field(ti.i32, shape=size)
         _scan_scratch["size"] = size
     return _exclusive_scan(count, start, n, chunk, _scan_scratch["field"])
-
-
-def grid_scan(g) -> int:
-    """cell_start over the buckets; returns the number of particle-cell incidences."""
-    return exclusive_scan(g.cell_count, g.cell_start, g.nbuckets)
 
 
 @ti.func
@@ -254,9 +273,9 @@ def neighbour_margins(p: ti.template(), nb: ti.template(), half_skin: float, h: 
         nb.margin[i] = ti.max(half_skin, 3.0 * reach(p, i, h, accel))
 
 
-@ti.kernel
-def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
-                   fill: ti.template()):
+@ti.func
+def _neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(),
+                    half_alert: ti.template(), fill: ti.template()):
     """The neighbour list: every pair (i, j), j > i, with a gap below the alert distance plus
     both margins, found from the first cell their enlarged boxes share. One walk of the cells
     around each particle counts its neighbours (`fill` False, into nb.count) or writes them at
@@ -303,6 +322,26 @@ def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_a
             nb.x_ref[i] = p.x[i]
         else:
             nb.count[i] = m
+
+
+@ti.kernel
+def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
+                   fill: ti.template()):
+    _neighbour_pass(p, g, nb, half_alert, fill)
+
+
+@ti.kernel
+def _neighbour_count_scan(p: ti.template(), g: ti.template(), nb: ti.template(),
+                          half_alert: float, n: ti.i32, chunk: ti.i32) -> ti.i32:
+    _neighbour_pass(p, g, nb, half_alert, False)
+    _scan_loops(nb.count, nb.start, n, chunk, nb.scan_partial)
+    return nb.start[n]
+
+
+def neighbour_count(p, g, nb, half_alert: float, n: int) -> int:
+    """Each particle's neighbours counted (nb.count) and scanned (nb.start) in one launch;
+    returns the number of pairs."""
+    return _neighbour_count_scan(p, g, nb, half_alert, n, scan_chunk(n))
 
 
 @ti.kernel
@@ -361,8 +400,19 @@ def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.
     _contact_pass(p, wl, nb, bd, ct, alert, h, accel, fill)
 
 
-def contact_count(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:
-    contact_pass(p, wl, nb, bd, ct, alert, h, accel, False)
+@ti.kernel
+def _contact_count_scan(p: ti.template(), wl: ti.template(), nb: ti.template(),
+                        bd: ti.template(), ct: ti.template(), alert: float, h: float,
+                        accel: float, n: ti.i32, chunk: ti.i32) -> ti.i32:
+    _contact_pass(p, wl, nb, bd, ct, alert, h, accel, False)
+    _scan_loops(ct.count, ct.start, n, chunk, ct.scan_partial)
+    return ct.start[n]
+
+
+def contact_count(p, wl, nb, bd, ct, alert: float, h: float, accel: float, n: int) -> int:
+    """Each particle's contact candidates counted (ct.count) and scanned (ct.start) in one
+    launch; returns the number of contacts."""
+    return _contact_count_scan(p, wl, nb, bd, ct, alert, h, accel, n, scan_chunk(n))
 
 
 def contact_fill(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:

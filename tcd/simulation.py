@@ -908,8 +908,7 @@ class Simulation:
             self._build_neighbours()
         while True:
             ct = self.contacts
-            ck.contact_count(p, wl, self.neighbours, bd, ct, self.alert, h, a)
-            total = ck.exclusive_scan(ct.count, ct.start, self.n)
+            total = ck.contact_count(p, wl, self.neighbours, bd, ct, self.alert, h, a, self.n)
             if total <= ct.capacity:
                 break
             self._resize_contacts(int(total * 1.5) + 16)
@@ -926,8 +925,7 @@ class Simulation:
         ck.neighbour_margins(p, self.neighbours, self._half_skin, h, a)
         while True:
             g = self.grid
-            ck.grid_count(p, g, self.neighbours, half_alert)
-            total = ck.grid_scan(g)
+            total = ck.grid_count(p, g, self.neighbours, half_alert)
             if total <= g.capacity:
                 break
             # a quarter more than needed (the capacity classes add up to another quarter):
@@ -939,8 +937,7 @@ class Simulation:
         ck.grid_scatter(p, self.grid, self.neighbours, half_alert)
         while True:
             nb = self.neighbours
-            ck.neighbour_pass(p, self.grid, nb, half_alert, False)
-            total = ck.exclusive_scan(nb.count, nb.start, self.n)
+            total = ck.neighbour_count(p, self.grid, nb, half_alert, self.n)
             if total <= nb.capacity:
                 break
             capacity = int(total * 1.5) + 16

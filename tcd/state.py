@@ -91,6 +91,15 @@ def _int(n, dtype=ti.i32):
     return ti.field(dtype, shape=n)
 
 
+SCAN_MIN_CHUNK = 64             # counts per thread of the parallel exclusive scan, at least
+
+
+def _scan_scratch(n):
+    """The chunk sums of the container's scans of up to n counts (contacts._scan_loops, at
+    least SCAN_MIN_CHUNK counts per chunk: n // SCAN_MIN_CHUNK + 2 entries)."""
+    return ti.field(ti.i32, shape=n // SCAN_MIN_CHUNK + 2)
+
+
 def _scalar(dtype=ti.i32):
     return ti.field(dtype, shape=())
 
@@ -304,6 +313,7 @@ class Grid:
         cc = self.cell_capacity = cell_capacity or capacity
         self.pool_args = (cc,)
         self.cell_count, self.cell_start = _int(cc), _int(cc + 1)
+        self.scan_partial = _scan_scratch(cc)
         self.items, self.keys = _int(capacity), _int(capacity)
         self.origin = ti.Vector.field(3, backend.real(), shape=())
         self.dims = ti.Vector.field(3, ti.i32, shape=())
@@ -336,6 +346,7 @@ class Neighbours:
         self.capacity, self.pool_args = capacity, (particle_capacity,)
         self.j = _int(capacity)
         self.count, self.start = _int(particle_capacity), _int(particle_capacity + 1)
+        self.scan_partial = _scan_scratch(particle_capacity)
         self.x_ref = _vec(particle_capacity)
         self.margin = _real(particle_capacity)
         self.stale = _scalar()
@@ -370,6 +381,7 @@ class Contacts:
         # accelerated (NNCG) Gauss-Seidel: search direction and last sweep's change per contact
         self.acc_p, self.acc_d = _vec(c), _vec(c)
         self.count, self.start = _int(n), _int(n + 1)
+        self.scan_partial = _scan_scratch(n)
         self.prev_j, self.prev_impulse, self.prev_start = _int(c), _vec(c), _int(n + 1)
         self.impulse_old, self.prev_old = _vec(c), _vec(c)
         self.total = _scalar()

@@ -113,6 +113,31 @@ def test_default_cell_size_minimises_the_pair_checks():
     assert items(c) < 0.25 * items(2 * (2 * r.min() + alert))
 
 
+def test_each_count_and_its_scan_in_one_launch_give_the_running_sums():
+    """The grid's incidences, the neighbour list and the contact list are each counted and
+    scanned in one launch (contacts._scan_loops after the counting loop): every start array is
+    the running sum of its counts, over many chunks of the scan (2000 particles in chunks of
+    64, SCAN_MIN_CHUNK: 32 chunks; 8192 buckets in chunks of 91), and the totals are the last
+    entries."""
+    r, x = random_cloud(2000, 11, box=0.08)
+    sim = Simulation(r, x, walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     domain=((0, 0, 0), (0.08, 0.08, 0.08)))
+    sim._build_contacts()
+    n, g, nb, ct = sim.n, sim.grid, sim.neighbours, sim.contacts
+    for count, start, size, total in ((g.cell_count, g.cell_start, g.nbuckets, None),
+                                      (nb.count, nb.start, n, nb.total[None]),
+                                      (ct.count, ct.start, n, ct.total[None])):
+        c = count.to_numpy()[:size].astype(np.int64)
+        s = start.to_numpy()[:size + 1]
+        assert c.sum() > size // 4
+        np.testing.assert_array_equal(s, np.concatenate([[0], np.cumsum(c)]))
+        if total is not None:
+            assert total == s[size]
+    assert int(ct.total[None]) == len(brute_force_pairs(x, r, 0.1 * r.min())) + int(
+        (x[:, 2] - r < 0.1 * r.min() + H * 9.81 * H).sum())
+    sim.close()
+
+
 def test_broad_phase_with_particles_outside_grid_and_growing_buffers(small_classes):
     r, x = random_cloud(300, 3, box=0.04)
     # grid covers only part of the cloud and buffers start tiny: results must not change

@@ -44,7 +44,8 @@ def test_short_path_gives_taichis_numbers_bit_for_bit(schedule):
     before = launch.counts()
     fast = bonded_pour(schedule)
     after = launch.counts()
-    assert after["fast"] - before["fast"] > 1000, "the steps went through the short path"
+    # 160 steps of five launches on the serial schedule (more on the coloured one)
+    assert after["fast"] - before["fast"] > 4 * 160, "the steps went through the short path"
     with launch.taichi_path():
         full = bonded_pour(schedule)
     assert launch.counts()["fast"] == after["fast"], "none through the short path inside taichi_path"
