@@ -112,9 +112,9 @@ def _grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert
 
 
 @ti.kernel
-def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
-              scatter: ti.template()):
-    _grid_walk(p, g, nb, half_alert, scatter)
+def grid_walk(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float):
+    """The scattering walk (the counting one runs in _grid_count_scan, with its scan)."""
+    _grid_walk(p, g, nb, half_alert, True)
 
 
 @ti.kernel
@@ -132,7 +132,7 @@ def grid_count(p, g, nb, half_alert: float) -> int:
 
 
 def grid_scatter(p, g, nb, half_alert: float) -> None:
-    grid_walk(p, g, nb, half_alert, True)
+    grid_walk(p, g, nb, half_alert)
 
 
 _scan_scratch = {"field": None, "size": 0}
@@ -325,9 +325,9 @@ def _neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(),
 
 
 @ti.kernel
-def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float,
-                   fill: ti.template()):
-    _neighbour_pass(p, g, nb, half_alert, fill)
+def neighbour_pass(p: ti.template(), g: ti.template(), nb: ti.template(), half_alert: float):
+    """The filling pass (the counting one runs in neighbour_count, with its scan)."""
+    _neighbour_pass(p, g, nb, half_alert, True)
 
 
 @ti.kernel
@@ -396,8 +396,10 @@ def _contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti
 
 @ti.kernel
 def contact_pass(p: ti.template(), wl: ti.template(), nb: ti.template(), bd: ti.template(),
-                 ct: ti.template(), alert: float, h: float, accel: float, fill: ti.template()):
-    _contact_pass(p, wl, nb, bd, ct, alert, h, accel, fill)
+                 ct: ti.template(), alert: float, h: float, accel: float):
+    """The filling pass alone (the counting one runs in contact_count, with its scan; a step
+    fills in solver.step_begin)."""
+    _contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
 
 
 @ti.kernel
@@ -416,7 +418,7 @@ def contact_count(p, wl, nb, bd, ct, alert: float, h: float, accel: float, n: in
 
 
 def contact_fill(p, wl, nb, bd, ct, alert: float, h: float, accel: float) -> None:
-    contact_pass(p, wl, nb, bd, ct, alert, h, accel, True)
+    contact_pass(p, wl, nb, bd, ct, alert, h, accel)
 
 
 @ti.func

@@ -946,7 +946,7 @@ class Simulation:
             self.neighbours = acquire(Neighbours, capacity, p.capacity)
             ck.neighbour_margins(p, self.neighbours, self._half_skin, h, a)
         nb.total[None] = total
-        ck.neighbour_pass(p, self.grid, nb, half_alert, True)
+        ck.neighbour_pass(p, self.grid, nb, half_alert)
         self._neighbours_valid = True
         self.neighbour_builds += 1
 

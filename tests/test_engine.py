@@ -178,8 +178,9 @@ def test_small_simulations_share_their_fields_and_compiled_kernels():
 
 
 def test_the_pool_hands_out_its_oldest_free_containers_as_one_set():
-    """After two simulations held at once are closed, in either order, the next simulation gets
-    the first one's containers, every one of them: a kernel instance is compiled per set of
+    """After two simulations held at once are closed (the second last, so that the last one
+    freed of each kind is the second's), the next simulation gets the first one's
+    containers, every one of them: a kernel instance is compiled per set of
     containers, and the pool handing out the last one freed of each kind mixed the two sets
     (new sets of containers, new instances to compile). Kernels compiled for the first set
     serve the third simulation without compiling again."""
