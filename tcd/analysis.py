@@ -194,6 +194,10 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
             raise ValueError(f"--out {out_prefix}: would overwrite the file being analysed "
                              f"({path}); choose another prefix")
     # an earlier analysis is replaced; any other file (a run's shear_series.h5 and .csv) is not
+    for target in (h5, csv):
+        if os.path.isdir(target):
+            raise ValueError(f"--out {out_prefix}: {target} is a directory; choose another "
+                             "prefix, or remove it")
     if os.path.exists(h5) and not _is_analysis(h5) or os.path.exists(csv) and not os.path.exists(h5):
         raise ValueError(f"--out {out_prefix}: {h5 if os.path.exists(h5) else csv} exists and "
                          "is not an output of tcd analyse (a run's series?); choose another "
@@ -207,6 +211,9 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
         h = float(time_step)
     if not states:
         raise ValueError(f"{path}: no frames to analyse")
+    from .export import refuse_batch
+    for state in states:
+        refuse_batch(state, path, "tcd analyse")
     if h is None:
         print(f"tcd analyse: {path} does not give the time step (a prepared sample or a "
               "checkpoint): normal forces and stresses are left out; pass --time-step H to "

@@ -9,6 +9,7 @@ walls), H = 2e-4 s, for T simulated seconds. Compile time is excluded: the first
 from __future__ import annotations
 
 import math
+import os
 import pathlib
 import time
 
@@ -412,6 +413,10 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"--out {out}: {folder} is a file, not a folder")
     writable_folder(base.parent, f"--out {out}", make=True)   # fails now, not after hours
+    for path in scaling_paths(out):
+        if (path.exists() or path.is_symlink()) and not path.is_file():
+            raise ValueError(f"--out {out}: {path} exists and is not a file (a directory?): "
+                             "remove it or choose another prefix")
     _init(arch, precision)
     rows = []
     for n in sizes:
@@ -439,9 +444,21 @@ def scaling(sizes=(1000, 3000, 10000, 30000, 100000), steps: int = 200, arch: st
         _write_scaling(rows, out, arch, precision, schedule, threads)
         if progress is not None:
             progress(rows[-1])
-    base = pathlib.Path(out)
+    csv_path, png_path = scaling_paths(out)
     return {"benchmark": "scaling", "arch": arch, "precision": precision, "rows": rows,
-            "csv": str(base.with_suffix(".csv")), "plot": str(base.with_suffix(".png"))}
+            "csv": str(csv_path), "plot": str(png_path)}
+
+
+def scaling_paths(out) -> tuple[pathlib.Path, pathlib.Path]:
+    """The CSV and the plot of `tcd bench scaling --out PREFIX`: PREFIX.csv and PREFIX.png
+    (a dot inside PREFIX is kept: `renders/scaling.v2` gives renders/scaling.v2.csv; a PREFIX
+    that already ends in .csv or .png stands for the pair)."""
+    text = os.fspath(out)
+    for suffix in (".csv", ".png"):
+        if text.lower().endswith(suffix):
+            text = text[:-len(suffix)]
+            break
+    return pathlib.Path(text + ".csv"), pathlib.Path(text + ".png")
 
 
 def _write_scaling(rows: list, out: str, arch: str, precision: str, schedule: str = "auto",
@@ -449,9 +466,9 @@ def _write_scaling(rows: list, out: str, arch: str, precision: str, schedule: st
     """The scan so far as CSV and log-log plot (both replaced atomically)."""
     import csv
     from . import io
-    base = pathlib.Path(out)
-    base.parent.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(base.with_suffix(".csv")) as tmp, open(tmp, "w", newline="") as fh:
+    csv_path, png_path = scaling_paths(out)
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -469,6 +486,6 @@ def _write_scaling(rows: list, out: str, arch: str, precision: str, schedule: st
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    with io.atomic_path(base.with_suffix(".png")) as tmp:
+    with io.atomic_path(png_path) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)

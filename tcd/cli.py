@@ -61,6 +61,20 @@ def _reading(path: Path):
                          "damaged or is not a complete tcd file") from None
 
 
+@contextlib.contextmanager
+def _writing():
+    """The file system's refusal (`tcd figures`, `tcd compare`: an output that cannot be
+    written) as one line that names the file, with status 2 as the other commands that make
+    files from a run's (docs/usage.md)."""
+    try:
+        yield
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        where = exc.filename if exc.filename is not None else ""
+        raise UsageError(f"{where + ': ' if where else ''}{exc.strerror or exc}") from None
+
+
 def _existing_results(out_dir: Path) -> list[Path]:
     """Files in `out_dir` that a fresh run would overwrite: a summary, checkpoints, HDF5 data."""
     if not out_dir.is_dir():
@@ -152,8 +166,8 @@ def _resume_command(args) -> str:
 def cmd_run(args) -> int:
     from .config import load_scenario, parse_setting
     settings = [parse_setting(text) for text in getattr(args, "set", None) or []]
-    scenario = load_scenario(args.scenario, settings).with_overrides(arch=args.arch,
-                                                            precision=args.precision)
+    scenario = load_scenario(args.scenario, settings, seeds=args.seeds).with_overrides(
+        arch=args.arch, precision=args.precision)
     scenario = scenario.with_seeds(args.seeds)
     for key, reason in scenario.doubts():       # values likely in another unit: run as written
         print(f"tcd: warning: {scenario.source}: {key}: {reason}", file=sys.stderr)
@@ -164,6 +178,8 @@ def cmd_run(args) -> int:
         raise UsageError("--from starts a new run from another run's checkpoints: it takes no "
                          "--resume (resume the new run itself with --resume) and no --batch")
     if args.resume:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise UsageError(f"nothing to resume: {out_dir} is a file, not a run directory")
         if not out_dir.is_dir():
             raise UsageError(f"nothing to resume: {out_dir} does not exist "
                              f"(run without --resume to start)")
@@ -207,9 +223,16 @@ def cmd_info(args) -> int:
         from .runner import run_info
         print(run_info(args.file))
         return 0
+    if args.set and not args.file.endswith(".toml") and Path(args.file).is_file():
+        raise UsageError(f"--set applies to a scenario file (tcd info SCENARIO.toml --set ...), "
+                         f"not to {args.file}")
     if args.file.endswith(".toml") or args.set:   # a scenario: checked, not run
         from .config import describe, load_scenario, parse_setting
-        print(describe(load_scenario(args.file, [parse_setting(t) for t in args.set or []])))
+        scenario = load_scenario(args.file, [parse_setting(t) for t in args.set or []])
+        if any(getattr(stage, "sample", "") for stage in scenario.stages):
+            from .runner import check_samples       # (imports Taichi: only when needed)
+            check_samples(scenario, scenario.seeds)     # each sample file read, as `tcd run` does
+        print(describe(scenario))
         return 0
     path = _existing_file(args.file)
     from . import io
@@ -250,6 +273,10 @@ def cmd_render(args) -> int:
     frames = _frames(args.frames)
     from .render import check_output
     check_output(args.out, args.frame)      # before Taichi starts (seconds)
+    folder = Path(os.path.abspath(args.out)).parent
+    if not folder.is_dir():                 # as export and analyse: no folder made by mistake
+        what = "is a file, not a folder" if folder.exists() else "does not exist"
+        raise UsageError(f"--out {args.out}: directory {folder} {what}")
     import tcd
     tcd.init(args.arch, args.precision)
     from .render import render_file
@@ -327,8 +354,9 @@ def cmd_figures(args) -> int:
         raise UsageError("several run directories (the parts of one study): give --out DIR "
                          "for their figures")
     from . import figures
-    written = _figure_warnings_as_lines(lambda: figures.make_figures(
-        run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out, velocity=args.velocity))
+    with _writing():
+        written = _figure_warnings_as_lines(lambda: figures.make_figures(
+            run_dirs[0] if len(run_dirs) == 1 else run_dirs, args.out, velocity=args.velocity))
     for path in written:
         print(path)
     if not written:
@@ -347,9 +375,10 @@ def cmd_compare(args) -> int:
                          "--target-peak MPa too")
     from .compare import compare_runs
     report: list[str] = []
-    written = _figure_warnings_as_lines(lambda: compare_runs(
-        run_dirs, args.out, labels, args.seeds, target_peak=args.target_peak,
-        setting=args.fit_setting, report=report))
+    with _writing():
+        written = _figure_warnings_as_lines(lambda: compare_runs(
+            run_dirs, args.out, labels, args.seeds, target_peak=args.target_peak,
+            setting=args.fit_setting, report=report))
     for path in written:
         print(path)
     for text in report:
@@ -407,7 +436,12 @@ def _run_bench(args) -> dict:
                      **({"convergence": args.convergence} if args.convergence != "impulse" else {}),
                      **({"acceleration": args.acceleration} if args.acceleration != "nncg" else {}))
     else:
-        options = dict(particles=args.particles, arch=args.arch, precision=args.precision,
+        if getattr(args, "sample", None) and args.particles is not None:
+            raise UsageError("--particles and --sample: the shear benchmark shears either a "
+                             "sample it prepares of --particles grains or the prepared file "
+                             "--sample gives; give one of them")
+        options = dict(particles=5200 if args.particles is None else args.particles,
+                       arch=args.arch, precision=args.precision,
                        tolerance=args.tolerance, seed=args.seed, schedule=args.schedule,
                        threads=args.threads, colouring=args.colouring,
                        check_every=args.check_every)
@@ -432,6 +466,9 @@ def _run_bench(args) -> dict:
                 except (KeyError, IndexError, ValueError):
                     raise UsageError(f"--sample {args.sample}: the only placeholder allowed is "
                                      "{seed}") from None
+                if path.is_dir():
+                    raise UsageError(f"--sample {args.sample}: {path} is a directory, not a "
+                                     "prepared sample file")
                 if not path.is_file():
                     raise UsageError(f"--sample {args.sample}: no such file {path}")
             options["sample"] = args.sample
@@ -698,8 +735,10 @@ def build_parser() -> argparse.ArgumentParser:
     for name, particles, text in (("pour", 2600, "pour spheres into a cylinder"),
                                   ("shear", 5200, "Leutner shear of a bonded sample")):
         b = bench_sub.add_parser(name, help=text)
-        b.add_argument("--particles", type=_particle_count, default=particles, metavar="N",
-                       help=f"particle count (default {particles})")
+        b.add_argument("--particles", type=_particle_count,
+                       default=None if name == "shear" else particles, metavar="N",
+                       help=f"particle count (default {particles})"
+                       + ("; not with --sample, whose grains it shears" if name == "shear" else ""))
         b.add_argument("--time", type=_positive_float, default=None, metavar="T",
                        help="simulated seconds (default: the benchmark's own)")
         _backend_options(b, default_arch="cpu", default_precision="f64")
@@ -771,6 +810,18 @@ def _schedule_options(parser) -> None:
                         "waits for the device)")
 
 
+def _io_error(exc: OSError, args) -> int:
+    """The file system refused (read-only, full, a name too long, a file where a folder must
+    be): one line naming the path; every output is written atomically, so what was there
+    before is intact."""
+    where = exc.filename if exc.filename is not None else ""
+    reason = exc.strerror or str(exc)
+    hint = ("; the files written before are intact: once this is fixed, run it again "
+            "(with --resume if it had written a checkpoint)" if args.command == "run" else "")
+    print(f"tcd: error: {where + ': ' if where else ''}{reason}{hint}", file=sys.stderr)
+    return EXIT_IO
+
+
 def _error(message) -> int:
     print(f"tcd: error: {message}", file=sys.stderr)
     return EXIT_USAGE
@@ -805,16 +856,14 @@ def main(argv=None) -> int:
             print("\ninterrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (UsageError, ValueError, FileNotFoundError) as exc:
-        return _error(exc)
+        if not (isinstance(exc, FileNotFoundError) and not isinstance(exc, ValueError)
+                and exc.errno is not None and args.command == "run"):
+            return _error(exc)
+        # a run's inputs are checked before it starts: the system's "no such file" is then
+        # about an output (an --out under a folder that cannot hold it, as /proc)
+        return _io_error(exc, args)
     except OSError as exc:
-        # the file system refused (read-only, full, a name too long, a file where a folder
-        # must be): every output is written atomically, so what was there before is intact
-        where = exc.filename if exc.filename is not None else ""
-        reason = exc.strerror or str(exc)
-        hint = ("; the files written before are intact: once this is fixed, run it again "
-                "(with --resume if it had written a checkpoint)" if args.command == "run" else "")
-        print(f"tcd: error: {where + ': ' if where else ''}{reason}{hint}", file=sys.stderr)
-        return EXIT_IO
+        return _io_error(exc, args)
     except RuntimeError as exc:
         from .backend import BackendUnavailable    # imported late: `tcd --help` stays instant
         if isinstance(exc, BackendUnavailable):

@@ -145,6 +145,10 @@ def mean_curve(samples: list, points: int = 400) -> tuple[np.ndarray, np.ndarray
     return grid, np.mean(curves, axis=0)
 
 
+#: what `compare_runs` writes into its folder
+COMPARE_FILES = ("compare.png", "compare.pdf", "compare.md", "compare.csv")
+
+
 def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
                  setting=None, report=None) -> list[Path]:
     """Write compare.png/.pdf/.md/.csv of `run_dirs` (at least two run directories) into
@@ -160,20 +164,26 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
     if len(run_dirs) < 2:
         raise ValueError("tcd compare needs at least two run directories (one run's figures: "
                          "tcd figures RUN_DIR)")
+    given = labels is not None
     if labels is None:
         labels = [p.name or os.fspath(p) for p in run_dirs]
-    labels = [str(x) for x in labels]
+    labels = [str(x).strip() for x in labels]
     if len(labels) != len(run_dirs):
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} run directories: give one "
                          "label per run")
+    for label in labels:
+        if not label or any(c in label for c in "|\n\r"):
+            raise ValueError(f"label {label!r}: a label must be a non-empty name without '|' "
+                             "or line breaks (it heads a column of compare.md)")
     if len(set(labels)) != len(labels):
-        raise ValueError(f"labels {labels} repeat a name (two run folders of one name: give "
-                         "--labels)")
+        raise ValueError(f"labels {labels} repeat a name" + (
+            "" if given else " (two run folders of one name: give --labels)"))
     for run_dir in run_dirs:
         if not run_dir.is_dir():
             raise FileNotFoundError(f"{run_dir}: run directory not found")
     out_dir = Path(out_dir)
     figures.refuse_file(out_dir)
+    figures.refuse_outputs(out_dir, COMPARE_FILES)
     wanted = None if seeds is None else {str(x) for x in seeds}
     runs = []
     for label, run_dir in zip(labels, run_dirs):

@@ -702,6 +702,14 @@ def apply_settings(text: str, settings, source: str = "<string>") -> str:
         parse_scenario(text, source, resolve_samples=False)
         raise ScenarioError(source, [("", f"malformed TOML: {exc}")]) from None
     problems = []
+    seen: dict = {}
+    for key, value in settings:
+        if key in seen:
+            problems.append((key, f"set twice by --set ({_shown_value(seen[key])}, then "
+                                  f"{_shown_value(value)}): give each key once"))
+        seen[key] = value
+    if problems:
+        raise ScenarioError(source, problems)
     for key, value in settings:
         table, parts = doc, key.split(".")
         try:
@@ -794,10 +802,11 @@ def describe(scenario: "Scenario") -> str:
             steps = stage.displacement_mm / stage.velocity_mm_per_min * 60 / scenario.solver.time_step
             test = (f"to {stage.displacement_mm:g} mm at {stage.velocity_mm_per_min:g} mm/min, "
                     f"{steps:.0f} time steps")
-            if stage.sample:        # one per seed, each checked by load_scenario
+            if stage.sample:        # one per seed, each read by `tcd info` (runner.check_samples)
                 count = len(scenario.seeds)
                 lines.append(f"stage[{k}] shears the sample files {stage.sample} "
-                             f"({count} file{'' if count == 1 else 's'}, all present) " + test)
+                             f"({count} file{'' if count == 1 else 's'}, all present and read "
+                             "as prepared samples) " + test)
             else:
                 lines.append(f"stage[{k}] shears the sample prepared before it " + test)
     lines += [f"warning: {key}: {reason}" for key, reason in scenario.doubts()]
@@ -818,9 +827,10 @@ def _shown_value(value) -> str:
 
 
 # --- parsing -----------------------------------------------------------------------------------
-def load_scenario(path, settings=()) -> Scenario:
+def load_scenario(path, settings=(), *, seeds=None) -> Scenario:
     """Read and validate the scenario file at `path` (see parse_scenario), with `settings`
-    ((KEY, value) pairs of `tcd run --set`) applied first (apply_settings)."""
+    ((KEY, value) pairs of `tcd run --set`) applied first (apply_settings); `seeds` (`tcd run
+    --seeds`): the seeds whose sample files must exist (default: all the scenario's)."""
     source = os.fspath(path)
     try:
         raw = Path(source).read_bytes()
@@ -836,14 +846,17 @@ def load_scenario(path, settings=()) -> Scenario:
     except UnicodeDecodeError as exc:
         raise ScenarioError(source, [("", f"not UTF-8 text (byte {exc.start}): TOML files "
                                           f"are UTF-8")]) from None
-    return parse_scenario(apply_settings(text, settings, source), source)
+    return parse_scenario(apply_settings(text, settings, source), source, seeds=seeds)
 
 
-def parse_scenario(text: str, source: str = "<string>", *, resolve_samples: bool = True) -> Scenario:
+def parse_scenario(text: str, source: str = "<string>", *, resolve_samples: bool = True,
+                   seeds=None) -> Scenario:
     """Validate the TOML `text` of a scenario; `source` names it in error messages and is the
     base directory of relative `sample` paths (the working directory for "<...>" sources).
     Raises ScenarioError listing every problem found. `resolve_samples=False` leaves `sample`
-    paths as written and does not look for the files (to compare two runs' scenarios)."""
+    paths as written and does not look for the files (to compare two runs' scenarios);
+    `seeds`: the seeds whose sample files must exist (default: all the scenario's; a run of
+    some of them, `tcd run --seeds`, needs only theirs)."""
     source = str(source)
     text = text.removeprefix("\ufeff")      # a byte-order mark some editors write
     try:
@@ -862,24 +875,32 @@ def parse_scenario(text: str, source: str = "<string>", *, resolve_samples: bool
         raise ScenarioError(source, reserved + _problems(exc)) from None
     if reserved:
         raise ScenarioError(source, reserved)
-    return _resolve_samples(scenario) if resolve_samples else scenario
+    return _resolve_samples(scenario, seeds) if resolve_samples else scenario
 
 
-def _resolve_samples(scenario: Scenario) -> Scenario:
-    """Make shear `sample` paths absolute (relative to the scenario file) and check they exist."""
+def _resolve_samples(scenario: Scenario, seeds=None) -> Scenario:
+    """Make shear `sample` paths absolute (relative to the scenario file) and check that the
+    files of `seeds` (default: every seed of the scenario) exist; a seed not in the scenario
+    is left to `Scenario.with_seeds` to report."""
+    seeds = scenario.seeds if seeds is None else [s for s in seeds if s in scenario.seeds]
     base = Path.cwd() if scenario.source.startswith("<") else Path(scenario.source).parent
     stages, missing = [], []
     for k, stage in enumerate(scenario.stages):
         if isinstance(stage, ShearStage) and stage.sample:
             path = (base / stage.sample).resolve()
-            for seed in scenario.seeds:
+            for seed in seeds or scenario.seeds[:1]:       # (the placeholder checked once)
                 try:
                     each = Path(str(path).format(seed=seed))
                 except (KeyError, IndexError, ValueError) as exc:
                     missing.append((f"stage[{k + 1}].sample", f"bad placeholder in {stage.sample!r}: "
                                                               f"only {{seed}} is known ({exc})"))
                     break
-                if not each.is_file():
+                if seed not in seeds:
+                    continue
+                if each.is_dir():
+                    missing.append((f"stage[{k + 1}].sample", f"{each} is a directory, not a "
+                                                              "sample file"))
+                elif not each.is_file():
                     missing.append((f"stage[{k + 1}].sample", f"no such sample file: {each}"))
             stage = stage.model_copy(update={"sample": str(path)})
         stages.append(stage)

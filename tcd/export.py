@@ -78,6 +78,19 @@ def _time_step(scenario_text: str) -> float | None:
     return float(SolverConfig.model_fields["time_step"].default)
 
 
+def refuse_batch(state: dict, path, command: str) -> None:
+    """ValueError when `state` (load_states) holds several samples batched side by side in one
+    simulation (a `tcd run --batch` checkpoint: particles/system): drawn or reduced as one,
+    they would give one picture or row of samples inside each other. `tcd export` keeps them
+    apart (each grain's `system`)."""
+    system = state.get("particles/system")
+    if system is not None and np.asarray(system).size and len(np.unique(system)) > 1:
+        raise ValueError(f"{path}: a batch checkpoint, {len(np.unique(system))} samples side by "
+                         f"side in one simulation (particles/system): {command} reads one "
+                         "sample; give a sample's own files (sample_<seed>/states.h5 or "
+                         "prepared.h5), or `tcd export` it (each grain keeps its system)")
+
+
 def load_states(path, frames="all") -> tuple[list[dict], float | None]:
     """The frames to export (flat dicts as io.read_frame gives them) and the time step H (None if
     unknown). A checkpoint or prepared sample gives its single state as frame 0."""
@@ -227,7 +240,7 @@ def _mesh(frame, part, h):
     n = len(x)
     if part == "particles":
         v = np.asarray(frame.get("particles/v", np.zeros_like(x)))
-        r = np.asarray(frame.get("particles/radius", np.zeros(n)))
+        r = np.asarray(frame["particles/radius"])         # (required: io.check_state)
         data = {"radius": r, "diameter": 2.0 * r, "velocity": v,
                 "speed": np.linalg.norm(v, axis=1),
                 "angular_velocity": np.asarray(frame.get("particles/w", np.zeros_like(x))),

@@ -290,6 +290,8 @@ def _curves(seed: str, directory: Path, series: dict, attrs: dict, path: Path) -
     stress = np.asarray(series["shear_stress"], dtype=float)
     if displacement.size == 0:
         raise ValueError(f"{path}: empty series")
+    if not np.any(np.isfinite(stress)):
+        raise ValueError(f"{path}: series 'shear_stress' holds no finite value")
     time = np.asarray(series.get("time", np.arange(displacement.size)), dtype=float)
     window = obs.as_number(attrs.get("smoothing_window"))
     if not window > 0:
@@ -895,6 +897,26 @@ def refuse_file(out_dir: Path) -> None:
                          "a folder)")
 
 
+#: what `make_figures` may write into its folder (STUDY_SUMMARY_NAME too, for several runs)
+FIGURE_FILES = ("fig4_stress_displacement.png", "fig4_stress_displacement.pdf", "table2.md",
+                "table2.csv", "table2.png", "bonds_broken.png", "fig2_sample.png",
+                "fig3_velocity.png")
+
+
+def refuse_outputs(out_dir: Path, names) -> None:
+    """A ValueError, before anything is read or written, when one of the files `names` of the
+    folder `out_dir` cannot be replaced: a directory (or other non-file) of that name, or a
+    folder the user cannot write into. Each file is replaced atomically, so without this a
+    refusal met halfway would leave the folder with some files new and others old."""
+    if out_dir.is_dir() and not os.access(out_dir, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out_dir}: the folder is not writable: nothing written")
+    for name in names:
+        path = out_dir / name
+        if (path.exists() or path.is_symlink()) and not path.is_file():
+            raise ValueError(f"{path}: exists and is not a file (a directory?): nothing "
+                             "written; remove it or choose another --out")
+
+
 def make_folder(out_dir: Path) -> None:
     """Create the output folder `out_dir` (and its parents); a failure is a ValueError naming
     it (`--out`)."""
@@ -926,6 +948,7 @@ def make_figures(run_dir, out_dir=None, *, render: bool = True,
         raise ValueError("several run directories: give the folder for their figures (--out)")
     out_dir = Path(out_dir) if out_dir is not None else run_dirs[0] / "figures"
     refuse_file(out_dir)
+    refuse_outputs(out_dir, FIGURE_FILES + ((STUDY_SUMMARY_NAME,) if several else ()))
     skipped: list = []
     summary, samples = load_runs(run_dirs, skipped)
     run_dir = run_dirs[0]

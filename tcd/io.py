@@ -471,7 +471,9 @@ def check_state(arrays: dict, where: str, *, wall_slots: int | None = None,
     ValueError naming `where`."""
     _check_arrays({k: v for k, v in arrays.items() if k in FRAME_SCHEMA}, {}, where,
                   wall_slots=wall_slots)
-    r, x = np.asarray(arrays.get("particles/radius", [])), np.asarray(arrays["particles/x"])
+    if "particles/radius" not in arrays:
+        raise ValueError(f"{where}: key 'particles/radius' is required")
+    r, x = np.asarray(arrays["particles/radius"]), np.asarray(arrays["particles/x"])
     if not np.all(np.isfinite(r) & (r > 0)):
         bad = int(np.count_nonzero(~(np.isfinite(r) & (r > 0))))
         raise ValueError(f"{where}: key 'particles/radius' holds {bad} radii that are not "
@@ -533,6 +535,13 @@ def _check_arrays(frame: dict, units: dict, where: str, *, wall_slots: int | Non
     if state is not None and state.size and not np.isin(
             state, (BOND_INTACT, BOND_BROKEN_TENSION, BOND_BROKEN_SHEAR)).all():
         raise ValueError(f"{where}: key 'bonds/state' has values outside {{0, 1, 2}}")
+    kind = arrays.get("walls/kind")
+    if kind is not None and kind.size:
+        from .walls import KINDS
+        if not np.isin(kind, sorted(KINDS.values())).all():
+            known = ", ".join(f"{v} {k}" for k, v in sorted(KINDS.items(), key=lambda kv: kv[1]))
+            raise ValueError(f"{where}: key 'walls/kind' has values outside {{{known}}}: "
+                             f"{sorted(set(kind.tolist()) - set(KINDS.values()))[:5]}")
     return prepared
 
 
@@ -902,6 +911,12 @@ def _info_states(f: h5py.File, path: str) -> list[str]:
                  f"step {min(steps)} .. {max(steps)}")
     lines.append(f"stages: {', '.join(stages)}")
     last = groups[-1]
+    diverged = []
+    for k, group in enumerate(groups):      # every frame's arrays, as export and render read them
+        frame = _datasets(group)
+        check_state(frame, f"{path}: frame {k}", finite_positions=False)
+        if not np.all(np.isfinite(frame["particles/x"])):
+            diverged.append(k)
 
     def length(key):
         return last[key].shape[0] if key in last else 0
@@ -916,6 +931,10 @@ def _info_states(f: h5py.File, path: str) -> list[str]:
                      f"broken in shear {int(np.sum(state == BOND_BROKEN_SHEAR))})")
     else:
         lines.append("bonds: none")
+    if diverged:
+        shown = ", ".join(map(str, diverged[:5])) + (" ..." if len(diverged) > 5 else "")
+        lines.append(f"warning: {len(diverged)} frame(s) hold positions that are not finite (a "
+                     f"run that diverged?): {shown}")
     return lines
 
 

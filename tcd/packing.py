@@ -66,6 +66,10 @@ class ColumnTooTall(ValueError):
     """lattice_column: the spheres need a taller column than max_height allows."""
 
 
+#: the most lattice spacings in a pouring column's radius (about 3e7 sites per level)
+MAX_SITES_ACROSS = 3000
+
+
 def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np.random.Generator,
                    *, max_height: float = 1.6, jitter: float = 2e-4,
                    spacing: float | None = None) -> np.ndarray:
@@ -90,6 +94,10 @@ def lattice_column(radii: np.ndarray, column_diameter: float, z0: float, rng: np
     half = column_diameter / 2.0 - rmax - jitter
     if half <= 0:
         raise ValueError(f"column diameter {column_diameter} m is smaller than the largest sphere")
+    if not half / a <= MAX_SITES_ACROSS:
+        raise ValueError(f"column diameter {column_diameter:g} m is {half / a:.3g} lattice "
+                         f"spacings ({a:g} m) in radius: at most {MAX_SITES_ACROSS} (a wider "
+                         "column is not a sample tcd can pour)")
     k = int(math.floor(half / a)) + 1
     g = np.arange(-k, k + 1) * a
     gx, gy = np.meshgrid(g, g, indexing="ij")

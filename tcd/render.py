@@ -914,6 +914,8 @@ def _frame_of_state(path, frame) -> dict:
         raise ValueError(f"{path}: frame {frame} out of range (a prepared sample or checkpoint "
                          "holds one state: frame 0)")
     state = load_states(path)[0][0]
+    from .export import refuse_batch
+    refuse_batch(state, path, "tcd render")
     n = len(state["particles/x"])
     out = {"time": float(state.get("time", math.nan)), "step": int(state.get("step", -1)),
            "stage": str(state.get("stage", "")), "courses": _state_courses(path)}

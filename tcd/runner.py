@@ -262,7 +262,7 @@ def scenario_changes(text: str, scenario, where: str) -> list:
     from .config import ScenarioError, parse_scenario
     try:
         # the new scenario's source: relative sample paths resolve as they did
-        first = parse_scenario(text, scenario.source)
+        first = parse_scenario(text, scenario.source, seeds=scenario.seeds)
     except ScenarioError as exc:
         reasons = "; ".join(f"{k}: {r}" if k else r for k, r in exc.problems)
         raise ValueError(f"{where}: the scenario this run started with cannot be read back "
@@ -522,7 +522,9 @@ def _scenario_file(started, stored: pathlib.Path, text: str) -> tuple[str, str]:
     try:
         words = shlex.split(text_settings(text))
         settings = [parse_setting(w) for w in words[1::2]]
-        changed = scenario_changes(text, load_scenario(path, settings), str(stored))
+        begun = started.get("seeds")
+        begun = begun if isinstance(begun, list) and all(isinstance(s, int) for s in begun) else None
+        changed = scenario_changes(text, load_scenario(path, settings, seeds=begun), str(stored))
     except ScenarioError as exc:
         return "", f"scenario file: {path}, which cannot serve a --resume now ({exc.problems[0][1]})"
     except (OSError, ValueError) as exc:
@@ -634,8 +636,13 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
             text += _shear_so_far(path)
         text += f"; checkpoint {path.name} written {created or '?'}"
         return text + ("" if batched else _branch_note(meta.get("result")))
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
-        return f"a checkpoint that cannot be read ({path}: {exc})"
+    except KeyError as exc:     # a checkpoint file that is not a run's (a prepared sample)
+        return (f"a checkpoint that cannot be read ({path}: its meta lacks {exc.args[0]!r}: "
+                "not a run's checkpoint)")
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        reason = str(exc)
+        return (f"a checkpoint that cannot be read ("
+                f"{reason if reason.startswith(str(path)) else f'{path}: {reason}'})")
 
 
 def batch_problem(scenario) -> str | None:
@@ -839,7 +846,8 @@ def _run_sample_job(text, source, arch, precision, seed, sample_dir, resume, pro
     """One sample in a worker process (see run_scenario's `jobs`), on `cpu_threads` threads of
     Taichi's CPU pool unless TCD_CPU_THREADS or TCD_PARALLEL_LOOPS says otherwise."""
     from .config import parse_scenario
-    scn = parse_scenario(text, source).with_overrides(arch=arch, precision=precision)
+    scn = parse_scenario(text, source, seeds=[seed]).with_overrides(arch=arch,
+                                                                    precision=precision)
     if os.environ.get(backend.THREADS_ENV) or os.environ.get(backend.LOOPS_ENV):
         cpu_threads = None
     backend.init(arch, precision, cpu_threads=cpu_threads)
