@@ -18,7 +18,8 @@ from tcd.cli import main
 from test_cli import SAMPLE, SCENARIO, _one_frame_states, _states_with, _with  # noqa: F401
 from test_figures import _write_sample
 
-pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning")]
+pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+              pytest.mark.filterwarnings("ignore:.*summary.json missing:UserWarning")]
 
 SHEAR = 'name = "s"\nseeds = {seeds}\n[[stage]]\nkind = "shear"\nsample = "{sample}"\n'
 
