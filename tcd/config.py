@@ -574,13 +574,14 @@ class Scenario(_Model):
             if prepared is None:
                 problems.append((f"{key}.sample", "a shear stage needs a preceding prepare "
                                                   "stage or a sample path"))
-            elif stage.displacement_mm >= prepared.cylinder_diameter_mm:
+                continue
+            if stage.displacement_mm >= prepared.cylinder_diameter_mm:
                 problems.append((f"{key}.displacement_mm",
                                  f"{stage.displacement_mm:g} mm is not smaller than the "
                                  f"{prepared.cylinder_diameter_mm:g} mm diameter of the "
                                  f"preceding prepare stage's mould: the upper ring would "
                                  f"leave the lower one"))
-            elif 2 * stage.ring_height_mm < prepared.sample_height_mm:
+            if 2 * stage.ring_height_mm < prepared.sample_height_mm:     # (both: one line each)
                 problems.append((f"{key}.ring_height_mm",
                                  f"two rings of {stage.ring_height_mm:g} mm cannot confine the "
                                  f"{prepared.sample_height_mm:g} mm sample of the preceding "

@@ -480,7 +480,10 @@ def run_info(out) -> str:
     if holder:
         lines.append(f"running now: a tcd process writes into it ({holder})")
     batch = out / "batch_checkpoint.h5"
-    if batch.is_file():
+    if batch.is_file() and (out / "summary.json").is_file() and not holder:
+        # a finished batch keeps its last checkpoint (a longer shear goes on from it: --from)
+        lines.append(f"batch: done (its last checkpoint: {batch.name})")
+    elif batch.is_file():
         lines.append("batch: " + _checkpoint_line(batch, stages, batched=True, live=bool(holder)))
     for seed in seeds:
         d = out / f"sample_{seed}"

@@ -24,6 +24,7 @@ from . import backend, contacts as ck, partitioned as pk, solver as sk, state as
 from .state import (MAX_PARTS, MAX_SWEEPS, MAX_SYSTEMS, MAX_WALLS, Bonds, ColourSet, Contacts, Grid, Neighbours, Partition,
                     Particles, SolverStats, WallFields, acquire, capacity_class, field_bytes, get, get_fields, put, put_fields,
                     release)
+from .stack import user_stacklevel
 from .walls import KINDS, Wall
 
 SCHEDULES = ("auto", "serial", "partitioned", "coloured", "resident")
@@ -237,11 +238,23 @@ class SolverSettings:
         if self.warm_start_extrapolation > 1.0:
             raise ValueError("warm_start_extrapolation must be in [0, 1], got "
                              f"{self.warm_start_extrapolation}")
-        g = np.asarray(self.gravity, dtype=float) if np.ndim(self.gravity) == 1 else None
-        if g is None or g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise ValueError(f"gravity must be a finite 3-vector (m/s^2), got {self.gravity!r}")
+        g = list(self.gravity) if np.ndim(self.gravity) == 1 else None
+        if (g is None or len(g) != 3 or not all(
+                isinstance(c, (int, float, np.integer, np.floating)) and not isinstance(c, bool)
+                and math.isfinite(float(c)) for c in g)):
+            raise ValueError(f"gravity must be a finite 3-vector of numbers (m/s^2), got "
+                             f"{self.gravity!r}")
         if not isinstance(self.bond_blocks, (bool, np.bool_)):
             raise ValueError(f"bond_blocks must be True or False, got {self.bond_blocks!r}")
+        # stored as Python numbers: a NumPy scalar kept its type in the clock's arithmetic (an
+        # np.float32 time step made the time float32, which stops advancing near 2048 s) and an
+        # array or list of gravity made the settings unequal or unhashable (session 69)
+        for name in _SETTINGS_FLOATS:
+            object.__setattr__(self, name, float(getattr(self, name)))
+        for name in _SETTINGS_INTS:
+            object.__setattr__(self, name, int(getattr(self, name)))
+        object.__setattr__(self, "gravity", tuple(float(c) for c in g))
+        object.__setattr__(self, "bond_blocks", bool(self.bond_blocks))
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if self.colouring not in COLOURINGS:
@@ -263,6 +276,11 @@ class SolverSettings:
         if self.convergence not in CONVERGENCE_MEASURES:
             raise ValueError(f"convergence must be one of {CONVERGENCE_MEASURES}, got "
                              f"{self.convergence!r}")
+
+
+_SETTINGS_FLOATS = ("time_step", "theta", "tolerance", "overlap_slop", "alert_ratio",
+                    "neighbour_skin", "warm_start_extrapolation")
+_SETTINGS_INTS = ("max_sweeps", "check_every", "threads", "projection_passes")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,6 +307,9 @@ class BondLaw:
         _finite("poisson_ratio", self.poisson_ratio)
         if not -1.0 < self.poisson_ratio < 0.5:
             raise ValueError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
+        for f in ("maxwell_stiffness", "maxwell_viscosity", "kelvin_stiffness", "kelvin_viscosity",
+                  "poisson_ratio", "yield_stress", "friction_after_break"):
+            object.__setattr__(self, f, float(getattr(self, f)))     # (as SolverSettings)
 
     @property
     def tangent_factor(self) -> float:
@@ -366,6 +387,10 @@ class Simulation:
                  domain=None, cell_size: float | None = None, contact_capacity: int | None = None,
                  time: float = 0.0, system=None):
         backend._require()
+        if radius is None or position is None:
+            raise TypeError("Simulation needs the radii and the positions of its particles, "
+                            f"got radius={radius!r}, position={position!r}")
+        walls = () if walls is None else walls
         radius = _numbers("radius", radius)
         if radius.ndim > 1:
             raise ValueError(f"radius must be one number per particle (shape (n,)), got shape "
@@ -472,16 +497,30 @@ class Simulation:
         self.cell_size = max(self.cell_size, 1e-9)
         self._grid_dims()
 
-        self.particles = acquire(Particles, n)
-        p = self.particles
-        p.count[None] = n
-        mass = density * 4.0 / 3.0 * math.pi * radius**3
-        inv_mass = 1.0 / mass
-        inv_inertia = 1.0 / (0.4 * mass * radius**2)
+        with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="ignore"):
+            mass = density * 4.0 / 3.0 * math.pi * radius**3
+            inv_mass = 1.0 / mass
+            inv_inertia = 1.0 / (0.4 * mass * radius**2)
+            real = backend.numpy_real()
+            usable = ((inv_mass.astype(real) > 0) & np.isfinite(inv_mass.astype(real))
+                      & (inv_inertia.astype(real) > 0) & np.isfinite(inv_inertia.astype(real)))
         if fixed is not None:
             fixed = np.asarray(fixed, dtype=bool)
             inv_mass[fixed] = 0.0
             inv_inertia[fixed] = 0.0
+            usable |= fixed
+        if not usable.all():
+            # (a mass of 0 or infinity in the backend's precision: inverse masses of infinity
+            # made NaN at the first step, of 0 a grain that no contact moves)
+            k = int(np.argmin(usable))
+            raise ValueError(f"density {float(density)!r} kg/m^3 and radius {float(radius[k])!r} "
+                             f"m (particle {k}) give a mass of {float(mass[k])!r} kg, whose "
+                             "inverse or that of its "
+                             f"moment of inertia is not a positive finite {backend.precision()} "
+                             "number")
+        self.particles = acquire(Particles, n)
+        p = self.particles
+        p.count[None] = n
         layer = np.zeros(n, np.int32) if layer is None else np.asarray(layer, np.int32)
         put_fields(p, {"radius": radius, "inv_mass": inv_mass, "inv_inertia": inv_inertia,
                        "x": position, "v": velocity, "w": np.zeros((n, 3)),
@@ -657,7 +696,7 @@ class Simulation:
             if count:
                 warnings.warn(f"wall {k} ({w.name!r}, {w.kind}): {count} particle centre(s) "
                               f"{where}; the contact law will push them through it",
-                              RuntimeWarning, stacklevel=3)
+                              RuntimeWarning, stacklevel=user_stacklevel())
 
     def _upload_walls(self, t: float) -> None:
         """All wall data (on set_walls); per step only `_move_walls` runs."""
@@ -1074,6 +1113,9 @@ class Simulation:
         return (np.arange(n) - self.system_start[system]).astype(np.int32)
 
     def _set_sample_index(self, index) -> None:
+        self.sample_index = self._checked_sample_index(index)
+
+    def _checked_sample_index(self, index) -> np.ndarray:
         index = np.asarray(index).reshape(-1)
         if index.shape != (self.n,) or not np.issubdtype(index.dtype, np.integer):
             raise ValueError(f"sample_index must be {self.n} integers, got shape {index.shape}, "
@@ -1081,7 +1123,7 @@ class Simulation:
         for s in range(self.systems):
             _check_permutation(f"sample_index of system {s}",
                                index[self.system_start[s]:self.system_start[s + 1]])
-        self.sample_index = index.astype(np.int32)
+        return index.astype(np.int32)
 
     @property
     def sweep_order_used(self) -> str:
@@ -1203,6 +1245,9 @@ class Simulation:
         """Restore particles, contact history and bonds written by `state_dict` (bit-exact).
         Walls are part of the scenario: set them with `set_walls`."""
         p = self.particles
+        if not isinstance(d, dict):
+            raise TypeError(f"load_state_dict takes a state_dict (a dict of arrays), got a "
+                            f"{type(d).__name__}")
         missing = [k for k in STATE_KEYS if k not in d]
         if missing:
             raise ValueError(f"state lacks {', '.join(missing)} (not a state_dict of a Simulation)")
@@ -1219,9 +1264,12 @@ class Simulation:
             # the grid cell, alert distance and projection slop follow the radii
             raise ValueError("state's particle radii differ from the simulation's (a state of "
                              "another sample): build the Simulation with the state's radii")
+        # every check before the first write: a refused state leaves the simulation as it was
+        sample_index = self._checked_sample_index(d.get("particles/sample_index",
+                                                        self._identity_index()))
         put_fields(p, {key: d["particles/" + key] for key in PARTICLE_STATE})
         self._inverse_masses = None
-        self._set_sample_index(d.get("particles/sample_index", self._identity_index()))
+        self.sample_index = sample_index
         self._neighbours_valid = False
         m = len(d["contacts/i"])
         if m > self.contacts.capacity:
@@ -1269,14 +1317,25 @@ class Simulation:
         sims = list(sims)
         if not sims:
             raise ValueError("batch needs at least one simulation")
+        for k, o in enumerate(sims):
+            if not isinstance(o, Simulation):
+                raise TypeError(f"batch takes Simulations; item {k} is a {type(o).__name__}")
         ref = sims[0]
         for k, o in enumerate(sims):
             if o.systems != 1:
                 raise ValueError(f"simulation {k} is already a batch of {o.systems} systems")
             for attr in ("time", "settings", "bond_law", "friction", "density"):
-                if getattr(o, attr) != getattr(ref, attr):
+                mine, theirs = getattr(o, attr), getattr(ref, attr)
+                if mine != theirs:
+                    if dataclasses.is_dataclass(mine) and type(mine) is type(theirs):
+                        fields = [f"{f.name} {getattr(mine, f.name)!r} != "
+                                  f"{getattr(theirs, f.name)!r}"
+                                  for f in dataclasses.fields(mine)
+                                  if getattr(mine, f.name) != getattr(theirs, f.name)]
+                        raise ValueError(f"simulation {k} differs from simulation 0 in {attr}: "
+                                         + ", ".join(fields))
                     raise ValueError(f"simulation {k} differs from simulation 0 in {attr}: "
-                                     f"{getattr(o, attr)!r} != {getattr(ref, attr)!r}")
+                                     f"{mine!r} != {theirs!r}")
         states = [o.state_dict() for o in sims]
         n_tot = sum(o.n for o in sims)
         wall_list, parts = [], {}
@@ -1321,6 +1380,8 @@ class Simulation:
 
     def system_slice(self, s: int) -> slice:
         """The particles of system s."""
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)):
+            raise TypeError(f"a system is named by its integer index, got {s!r}")
         if not 0 <= s < self.systems:
             raise ValueError(f"no system {s} (the simulation has {self.systems})")
         return slice(int(self.system_start[s]), int(self.system_start[s + 1]))
@@ -1410,7 +1471,10 @@ class Simulation:
         put(self.particles.f_ext, per_particle("external force", force, self.n))
 
     def set_positions(self, x) -> None:
-        put(self.particles.x, per_particle("positions", x, self.n, broadcast=False))
+        x = per_particle("positions", x, self.n, broadcast=False)
+        # as the constructor: two grains of one system at one centre have no contact normal
+        _check_distinct_centres(np.asarray(x, float), get(self.particles.system, self.n))
+        put(self.particles.x, x)
         self._neighbours_valid = False
 
     def set_velocities(self, v) -> None:
@@ -1625,7 +1689,12 @@ def check_state_arrays(d: dict) -> None:
     for key in ("inv_mass", "inv_inertia"):
         need("particles/" + key, (n,), low=0.0)
     need("particles/f_ext", (n, 3))
-    need("particles/layer", (n,), kind="i", low=0)
+    layer = need("particles/layer", (n,), kind="i", low=0)
+    if layer.size and layer.max() > INT32_MAX:
+        raise ValueError(f"state's particles/layer holds values above {INT32_MAX}")
+    system = np.asarray(d.get("particles/system", np.zeros(n, np.int32)))
+    if system.shape == (n,):
+        _check_distinct_centres(np.asarray(d["particles/x"], float), system)
     m = len(arr("contacts/i"))
     ci = need("contacts/i", (m,), kind="i", low=0)
     if m and ci.max() >= n:
@@ -1657,6 +1726,18 @@ def check_state_arrays(d: dict) -> None:
             a = need(key, (b,), kind="i", low=0)
             if a.max() >= n:
                 raise ValueError(f"state's {key} has indices outside the {n} particles")
+        bi, bj = arr("bonds/i").astype(np.int64), arr("bonds/j").astype(np.int64)
+        if np.any(bi >= bj):
+            k = int(np.argmax(bi >= bj))
+            raise ValueError(f"state's bond {k} joins particle {bi[k]} to {bj[k]}: a bond joins "
+                             "two particles, listed as i < j")
+        pairs = bi * n + bj
+        if len(np.unique(pairs)) != b:
+            raise ValueError("state's bonds list a pair of particles twice")
+        if "bonds/area" in d:
+            area = need("bonds/area", (b,))
+            if np.any(area <= 0):
+                raise ValueError("state's bonds/area holds values that are not positive")
     for key in Simulation._BOND_DEFAULTS:
         if "bonds/" + key in d and key not in ("i", "j", "state"):
             shape = (b, 3) if key in Simulation._BOND_VECTORS else (b,)

@@ -93,10 +93,11 @@ class Wall:
                              f"got {self.extent!r}")
         object.__setattr__(self, "extent", (float(ext[0]), float(ext[1])))
         d = np.asarray(self.direction, dtype=float)
-        n = float(np.linalg.norm(d))
-        if not n > 0:
+        scale = float(np.max(np.abs(d))) if d.size else 0.0
+        if not scale > 0:
             raise ValueError(f"wall {self.name!r}: direction must be a non-zero vector")
-        object.__setattr__(self, "direction", tuple(float(c) for c in d / n))
+        d = d / scale           # (so that the norm of (1e300, 1e300, 0) does not overflow)
+        object.__setattr__(self, "direction", tuple(float(c) for c in d / np.linalg.norm(d)))
         if self.kind == "cylinder":
             if not self.radius > 0:
                 raise ValueError(f"wall {self.name!r}: cylinder radius must be positive")
@@ -115,12 +116,15 @@ class Wall:
         unused = [key for key, motions in (("velocity", ("constant", "sine")),
                                            ("amplitude", ("sine",)))
                   if self.motion not in motions and any(getattr(self, key))]
+        if self.motion != "sine" and self.frequency:
+            unused.append("frequency")
         if unused:
             import warnings
+            from .stack import user_stacklevel
             warnings.warn(f"wall {self.name!r}: motion {self.motion!r} ignores its "
                           f"{' and '.join(unused)} (give motion=\"constant\" or \"sine\"; to "
                           "set a moving wall going from where it is, Wall.moving_from)",
-                          UserWarning, stacklevel=3)
+                          UserWarning, stacklevel=user_stacklevel())
 
     def position(self, t: float) -> np.ndarray:
         p0 = np.asarray(self.point, dtype=float)

@@ -1,6 +1,7 @@
-"""Session 69's review of the commands as a user who feeds them bad input: each test is a defect
-that review found (what the command did before is in its docstring), checked on the command
-itself or on the function it calls. No simulation runs here."""
+"""Session 69's review of the commands and of the Python API as a user who feeds them bad
+input: each test is a defect that review found (what tcd did before is in its docstring),
+checked on the command itself or on the function it calls. No simulation runs longer than a
+few steps of a few grains."""
 import errno
 import json
 import pathlib
@@ -13,7 +14,8 @@ import numpy as np
 import pytest
 
 import tcd
-from tcd import bench, compare, config, figures, packing, runner
+from tcd import bench, compare, config, figures, packing, runner, walls
+from tcd.simulation import BondLaw, Simulation, SolverSettings
 from tcd.cli import main
 from test_cli import SAMPLE, SCENARIO, _one_frame_states, _states_with, _with  # noqa: F401
 from test_figures import _write_sample
@@ -233,6 +235,18 @@ def test_analyse_names_a_directory_in_place_of_its_output(tmp_path, capsys):
     assert f"{tmp_path / 'an.h5'} is a directory" in capsys.readouterr().err
 
 
+def test_a_shear_stage_s_two_geometry_problems_are_both_named(tmp_path, capsys):
+    """The displacement against the mould and the rings against the sample's height were an
+    `elif`: the second showed only once the first was mended."""
+    path = tmp_path / "s.toml"
+    path.write_text(SCENARIO)
+    assert main(["info", str(path), "--set", "stage[2].displacement_mm=200",
+                 "--set", "stage[2].ring_height_mm=50"]) == 2
+    err = capsys.readouterr().err
+    assert "stage[2].displacement_mm: 200 mm is not smaller" in err, err
+    assert "stage[2].ring_height_mm: two rings of 50 mm" in err, err
+
+
 def test_a_key_set_twice_is_refused(tmp_path, capsys, scenario_file):
     """The last of two `--set` of one key was taken silently."""
     assert main(["info", str(scenario_file), "--set", "solver.tolerance=1e-5",
@@ -309,3 +323,124 @@ def test_the_figure_file_lists_name_what_the_commands_write(tmp_path):
     _write_sample(runs[1], 1, 0.80e6, 2.1e-3)
     written = compare.compare_runs(runs, tmp_path / "c")
     assert {p.name for p in written} == set(compare.COMPARE_FILES)
+
+
+# --- the Python API ----------------------------------------------------------------------------
+def _pair(**kw):
+    return Simulation(np.full(2, 1e-3), [[0, 0, 0.002], [0, 0, 0.006]],
+                      walls=[walls.plane((0, 0, 0), (0, 0, 1))], **kw)
+
+
+def test_settings_hold_python_numbers():
+    """An np.float32 time step made the clock float32 (it stops advancing near 2048 s with
+    H = 1e-4); gravity was kept as given: strings failed in a kernel ("type object 'float' has
+    no attribute 'to_string'"), an array made two settings unequal to compare."""
+    s = SolverSettings(time_step=np.float32(1e-4), max_sweeps=np.int64(10),
+                       gravity=np.array([0, 0, -9.81]))
+    assert type(s.time_step) is float and type(s.max_sweeps) is int
+    assert s.gravity == (0.0, 0.0, -9.81) and all(type(g) is float for g in s.gravity)
+    assert hash(s) == hash(SolverSettings(time_step=float(np.float32(1e-4)), max_sweeps=10))
+    assert SolverSettings(gravity=[0, 0, -9.81]) == SolverSettings()
+    with pytest.raises(ValueError, match="gravity must be a finite 3-vector of numbers"):
+        SolverSettings(gravity=["0", "0", "-9.81"])
+    assert type(BondLaw(yield_stress=np.float32(2e6)).yield_stress) is float
+    sim = _pair(settings=SolverSettings(time_step=np.float32(1e-4)))
+    try:
+        sim.step(3)
+        assert type(sim.time) is float
+    finally:
+        sim.close()
+
+
+def test_batch_names_the_setting_that_differs_and_refuses_what_is_not_a_simulation():
+    a, b = _pair(), _pair(settings=SolverSettings(tolerance=1e-5))
+    try:
+        with pytest.raises(ValueError, match=r"in settings: tolerance 1e-05 != 0.0001$"):
+            Simulation.batch([a, b])
+    finally:
+        a.close()
+        b.close()
+    with pytest.raises(TypeError, match="item 0 is a int"):
+        Simulation.batch([1, 2])
+
+
+def test_set_positions_and_states_refuse_two_grains_at_one_centre():
+    """The constructor refused them (no contact normal); set_positions and load_state_dict
+    installed them, and the pair stayed merged for ever."""
+    sim = _pair()
+    try:
+        x = sim.positions()
+        x[1] = x[0]
+        with pytest.raises(ValueError, match="particles 0 and 1 have the same centre"):
+            sim.set_positions(x)
+        d = sim.state_dict()
+        d["particles/x"] = x
+        with pytest.raises(ValueError, match="particles 0 and 1 have the same centre"):
+            sim.load_state_dict(d)
+        assert sim.positions()[1, 2] == pytest.approx(0.006)       # unchanged
+    finally:
+        sim.close()
+
+
+def test_masses_that_are_zero_or_infinite_in_the_backend_are_refused(precision):
+    """A density of 1e-300 or a radius of 1e-120 m gave infinite inverse masses, NaN at the
+    first step, with only NumPy's "divide by zero" warning."""
+    with pytest.raises(ValueError, match="density 1e-300 kg/m\\^3 and radius 0.001 m"):
+        _pair(density=1e-300)
+    with pytest.raises(ValueError, match="radius 1e-120 m \\(particle 0\\)"):
+        Simulation([1e-120, 1e-3], [[0, 0, 0.002], [0, 0, 0.006]], cell_size=0.01)
+
+
+def test_a_state_with_bad_bonds_or_layers_is_refused_and_leaves_the_simulation_as_it_was():
+    """Self-bonds made NaN, duplicated bonds doubled a stiffness, bonds of area 0 never broke,
+    a layer id of 2**40 was stored as -2**31; and a state refused for its sample_index had
+    already been written into the simulation."""
+    sim = Simulation(np.full(2, 1e-3), [[0, 0, 0.002], [0, 0, 0.0040001]])
+    try:
+        sim.create_bonds(1e-3)
+        good = sim.state_dict()
+        assert len(good["bonds/i"]) == 1
+        cases = [({"bonds/j": good["bonds/i"].copy()}, "joins particle 0 to 0"),
+                 ({k: np.concatenate([good[k], good[k]]) for k in good if k.startswith("bonds/")},
+                  "list a pair of particles twice"),
+                 ({"bonds/area": np.zeros(1)}, "bonds/area holds values that are not positive"),
+                 ({"particles/layer": np.array([0, 2**40 + 7])}, "particles/layer holds values "
+                                                                 "above 2147483647")]
+        for change, words in cases:
+            with pytest.raises(ValueError, match=words):
+                sim.load_state_dict({**good, **change})
+        moved = {**good, "particles/x": good["particles/x"] + 0.01,
+                 "particles/sample_index": np.zeros(2, np.int32)}
+        with pytest.raises(ValueError, match="sample_index of system 0"):
+            sim.load_state_dict(moved)
+        np.testing.assert_array_equal(sim.positions(), good["particles/x"])
+    finally:
+        sim.close()
+
+
+def test_wall_directions_of_huge_components_and_ignored_frequencies():
+    """(1e300, 1e300, 0) became the direction (0, 0, 0) (its norm overflowed); a constant
+    motion's frequency was ignored without a word; the warnings pointed into tcd's files."""
+    assert walls.plane((0, 0, 0), (1e300, 1e300, 0)).direction == pytest.approx(
+        (2 ** -0.5, 2 ** -0.5, 0.0))
+    with pytest.warns(UserWarning, match="ignores its frequency") as record:
+        walls.plane((0, 0, 0), (0, 0, 1), motion="constant", frequency=-5)
+    assert record[0].filename == __file__
+    with pytest.warns(RuntimeWarning, match="behind it") as record:
+        Simulation([1e-3], [[0, 0, -0.1]], walls=[walls.plane((0, 0, 0), (0, 0, 1))]).close()
+    assert record[0].filename == __file__
+
+
+def test_api_misuse_is_a_message_not_numpy_s():
+    sim = _pair()
+    try:
+        for bad in (0.5, True):
+            with pytest.raises(TypeError, match="integer index"):
+                sim.system_slice(bad)
+        with pytest.raises(TypeError, match="load_state_dict takes a state_dict"):
+            sim.load_state_dict(None)
+    finally:
+        sim.close()
+    with pytest.raises(TypeError, match="needs the radii and the positions"):
+        Simulation(None, [[0, 0, 0]])
+    Simulation([1e-3], [[0, 0, 0.1]], walls=None).close()      # None: no walls

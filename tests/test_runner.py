@@ -583,6 +583,9 @@ def test_batched_shear_equals_the_samples_sheared_one_by_one(micro_run, tmp_path
     assert prep[0] == 0.0 and prep[1] == pytest.approx(0.05, abs=1e-9), prep[:3]
     assert full[1] - full[0] > 5 * 5e-4, full[:3]
 
+    # a finished batch keeps its checkpoint: `tcd info` said it "stopped in the shear"
+    finished = runner.run_info(tmp_path / "batch")
+    assert "batch: done (its last checkpoint: batch_checkpoint.h5)" in finished, finished
     monkeypatch.setattr(runner, "DeferredInterrupt", _interrupt_after(15))
     with pytest.raises(KeyboardInterrupt):
         runner.run_batch(load_here(pair), tmp_path / "cut", progress=False)
