@@ -90,10 +90,15 @@ def test_normal_creep_follows_F_J_t(mode, theta, tol, precision):
     assert sim.bonds_intact_count() == 1
 
 
-def test_tangential_creep_follows_2_1_plus_nu_F_J_t(precision):
+@pytest.mark.parametrize("mode, theta", [("burgers", 1.0), ("paper", 0.5)])
+def test_tangential_creep_follows_2_1_plus_nu_F_J_t(mode, theta, tol, precision):
+    """At theta = 1/2 too (session 69's mutation study: the bond's tangential displacement at
+    the step's end, d_t_beg + theta H U_T, taken as d_t_beg + H U_T, passed every test, the
+    only bonded tests at theta = 1/2 being normal ones; the creep then comes out a third
+    short)."""
     F = 1.0
     h = 5e-3
-    sim = pair(0.004, 0.004, mode="burgers", h=h)
+    sim = pair(0.004, 0.004, mode=mode, h=h, theta=theta)
     sim.set_external_force([[0, 0, 0], [0, F, 0]])
     y0 = sim.positions()[1, 1]
     worst = 0.0
@@ -102,7 +107,7 @@ def test_tangential_creep_follows_2_1_plus_nu_F_J_t(precision):
         if k % 200 == 0:
             dy = sim.positions()[1, 1] - y0
             worst = max(worst, abs(dy / (2 * (1 + NU) * F * J(k * h)) - 1.0))
-    assert worst < creep_bound(precision), worst
+    assert worst < (creep_bound(precision) if mode == "burgers" else max(1e-3, 100 * tol)), worst
 
 
 def position_quantum(precision, x=0.008):
@@ -757,6 +762,25 @@ def test_a_bond_spun_about_its_axis_turns_its_tangential_history_with_it(mode, t
     if mode == "burgers":
         hd = b["bonds/hd_t"][0]
         assert abs(hd @ turned) >= 0.99 * np.linalg.norm(hd) > 0, hd
+    assert sim.bonds_intact_count() == 1
+
+
+@pytest.mark.parametrize("spinning", [0, 1])
+def test_a_bond_twisted_by_one_grain_turns_its_history_by_the_mean_spin(spinning, tol):
+    """Torsion: one grain of the held pair spins about the bond's axis at 2 omega, the other
+    not; the history turns by H (w_i + w_j) . n / 2 a step, the mean spin, whichever grain
+    spins (session 69's mutation study: the turn taken from w_i alone passed every test, whose
+    grains all spun together)."""
+    h, d, omega, steps = 1e-3, 1e-6, 10.0, 100
+    sim = held_pair_with_history("paper", h, d)
+    w = np.zeros((2, 3))
+    w[spinning, 0] = 2 * omega
+    sim.set_angular_velocities(w)
+    sim.step(steps)
+    a = omega * h * steps          # 1 rad
+    np.testing.assert_allclose(sim.state_dict()["bonds/d_t"][0],
+                               d * np.array([0.0, math.cos(a), math.sin(a)]),
+                               rtol=0, atol=10 * d * tol)
     assert sim.bonds_intact_count() == 1
 
 
