@@ -154,21 +154,27 @@ def install() -> bool:
                 key.append(id(a))
         key = tuple(key)
         entry = entries.get(key)
-        if entry is not None and any(ref is not None and ref() is not a
-                                     for ref, a in zip(entry[0], templates)):
+        if entry is not None and (
+                any(ref is not None and ref() is not a for ref, a in zip(entry[0], templates))
+                # Taichi dropped its compiled kernel (SNodeTree.destroy clears compiled_kernels,
+                # ti.reset and a new ti.init give the kernel a new dict) or its Program went
+                # away: launching the entry would run freed code on freed fields
+                or self.compiled_kernels.get(entry[4]) is not entry[1]
+                or runtime.prog is not entry[3]):
             entry = None
         if entry is None or not nothing_to_materialise(runtime):
             _state["full"] += 1
             out = full_call(self, *args)
             instance, _ = self.mapper.lookup(args)
-            kernel_cpp = self.compiled_kernels[(self.func, instance, self.autodiff_mode)]
+            ckey = (self.func, instance, self.autodiff_mode)
+            kernel_cpp = self.compiled_kernels[ckey]
             refs = tuple(None if isinstance(a, immutable) else _ref(a) for a in templates)
             prog = impl.get_runtime().prog
             data = prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel_cpp)
-            if len(entries) < MAX_ENTRIES:
-                entries[key] = (refs, kernel_cpp, data, prog)
+            if key in entries or len(entries) < MAX_ENTRIES:     # (a stale entry replaced)
+                entries[key] = (refs, kernel_cpp, data, prog, ckey)
             return out
-        _, kernel_cpp, data, prog = entry
+        _, kernel_cpp, data, prog, _ = entry
         ctx = kernel_cpp.make_launch_context()
         slot = 0
         for p, a in zip(plan, args):

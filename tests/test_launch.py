@@ -2,6 +2,9 @@
 the arguments Taichi would set, so every number is the same as through Taichi's full path; and
 it falls back to that path whenever its memory could be stale (a new container, a new field, a
 scalar of another type)."""
+import os
+import pathlib
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -103,3 +106,40 @@ def test_the_switch_is_0_or_1(monkeypatch):
     monkeypatch.setenv(launch.FAST_LAUNCH_ENV, "yes")
     with pytest.raises(ValueError, match="TCD_FAST_LAUNCH must be 0 or 1"):
         launch.enabled()
+
+
+RESET_SCRIPT = """
+import sys
+import taichi as ti
+from tcd import launch
+ti.init(arch=ti.cpu, offline_cache=False, log_level=ti.WARN)
+assert launch.install()
+def add(x: ti.i32) -> ti.i32:
+    return x + a[None]
+add.__module__ = "tcd.fake"         # a kernel of tcd's own, to the short path
+add = ti.kernel(add)
+a = ti.field(ti.i32, shape=())
+a[None] = 100
+first = [add(1), add(2)]
+fast = launch.counts()["fast"]
+ti.reset()
+ti.init(arch=ti.cpu, offline_cache=False, log_level=ti.WARN)
+a = ti.field(ti.i32, shape=())
+a[None] = 7
+print(first, fast, add(1), add(1), launch.counts()["fast"] - fast)
+"""
+
+
+def test_a_kernel_taichi_dropped_is_not_launched_again(tmp_path):
+    """After ti.reset and a new ti.init (or a destroyed SNode tree) Taichi throws its compiled
+    kernels away; the short path kept launching the old one, on the old program: a
+    segmentation fault (session 69's review of the launch path)."""
+    import subprocess
+    import sys
+    script = tmp_path / "reset.py"          # (a kernel's source must be in a file)
+    script.write_text(RESET_SCRIPT)
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, cwd=str(root), env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert out.stdout.strip().splitlines()[-1] == "[101, 102] 1 8 8 1", out.stdout
