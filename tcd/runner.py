@@ -19,6 +19,7 @@ state and step counts, the resumed run ends with the same numbers as an uninterr
 from __future__ import annotations
 
 import contextlib
+import datetime as _dt
 import json
 import math
 import os
@@ -168,6 +169,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         if resume and path.exists():
             done[seed] = json.loads(path.read_text())
     pending = [seed for seed in scenario.seeds if seed not in done]
+    if resume and not pending:
+        print(f"tcd: note: {out}: every sample was already done; nothing to resume (the run's "
+              "summary is written again)", file=sys.stderr)
     if jobs > 1 and len(pending) > 1 and scenario.solver.schedule == "partitioned":
         threads = min(jobs, len(pending)) * scenario.solver.threads
         cores = os.cpu_count() or 1
@@ -637,6 +641,13 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
         text += f", t = {float(meta['time']):.4f} s"
         if not batched:
             text += _shear_so_far(path)
+        # the file's own time: its `created` attribute follows SOURCE_DATE_EPOCH when set (for
+        # reproducible bytes), which made this line say "written 1970-01-01..."
+        try:
+            written = _dt.datetime.fromtimestamp(path.stat().st_mtime, _dt.timezone.utc)
+            created = written.isoformat(timespec="seconds")
+        except OSError:
+            pass
         text += f"; checkpoint {path.name} written {created or '?'}"
         return text + ("" if batched else _branch_note(meta.get("result")))
     except KeyError as exc:     # a checkpoint file that is not a run's (a prepared sample)

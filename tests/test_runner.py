@@ -1634,3 +1634,25 @@ def test_tcd_info_of_a_stopped_shear_gives_its_travel_stress_and_peak_so_far(mic
         text = runner.run_info(tmp_path / "cut")
     assert "sample_3: running, its last checkpoint in stage 1 of 1 (shear), " in text, text
     assert so_far in text, text
+
+
+def test_a_finished_run_resumed_says_so_and_info_dates_checkpoints_by_their_file(
+        micro_run, tmp_path, capsys, monkeypatch):
+    """Session 69's kill-and-resume trials: `--resume` of a finished run rewrote its summary
+    without a word; with SOURCE_DATE_EPOCH set (reproducible bytes) `tcd info` said a
+    checkpoint was "written 1970-01-01...", the file's `created` attribute."""
+    import shutil
+    import h5py
+    from tcd import runner
+    scenario, out = micro_run
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(copy), "--resume"]) == 0
+    assert "every sample was already done; nothing to resume" in capsys.readouterr().err
+    (copy / "summary.json").unlink()
+    (copy / "sample_3" / "summary.json").unlink()
+    with h5py.File(copy / "sample_3" / "checkpoint.h5", "a") as f:
+        f.attrs["created"] = "1970-01-01T00:00:00+00:00"
+    info = runner.run_info(copy)
+    assert "checkpoint checkpoint.h5 written 20" in info and "1970" not in info, info
