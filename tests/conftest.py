@@ -219,3 +219,30 @@ def pytest_collection_modifyitems(session, config, items):
                 item.add_marker(skip)
     rank = {name: k for k, name in enumerate(_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(_FIRST)))   # stable: else unchanged
+
+
+@pytest.fixture
+def stub(monkeypatch):
+    """stub("runner", run_scenario=f): `tcd.runner` is a fake module for this test (the
+    command-line tests: no simulation runs)."""
+    def install(name, **attrs):
+        import sys
+        import types
+        module = types.ModuleType(f"tcd.{name}")
+        module.__dict__.update(attrs)
+        monkeypatch.setitem(sys.modules, f"tcd.{name}", module)
+        monkeypatch.setattr(tcd, name, module, raising=False)
+        return module
+    return install
+
+
+@pytest.fixture
+def runner_calls(stub):
+    """`tcd.runner.run_scenario` stubbed: each call's arguments recorded."""
+    calls = []
+
+    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
+        calls.append(dict(scenario=scenario, out_dir=out_dir, resume=resume, progress=progress, jobs=jobs))
+        return {"scenario": scenario.name, "tau_peak_MPa": 0.8371234567}
+    stub("runner", run_scenario=run_scenario)
+    return calls

@@ -4,7 +4,6 @@ import json
 import pathlib
 import subprocess
 import sys
-import types
 
 import numpy as np
 import pytest
@@ -33,29 +32,6 @@ def scenario_file(tmp_path):
     path = tmp_path / "cli.toml"
     path.write_text(SCENARIO)
     return path
-
-
-@pytest.fixture
-def stub(monkeypatch):
-    """stub("runner", run_scenario=f): `tcd.runner` is a fake module for this test."""
-    def install(name, **attrs):
-        module = types.ModuleType(f"tcd.{name}")
-        module.__dict__.update(attrs)
-        monkeypatch.setitem(sys.modules, f"tcd.{name}", module)
-        monkeypatch.setattr(tcd, name, module, raising=False)
-        return module
-    return install
-
-
-@pytest.fixture
-def runner_calls(stub):
-    calls = []
-
-    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
-        calls.append(dict(scenario=scenario, out_dir=out_dir, resume=resume, progress=progress, jobs=jobs))
-        return {"scenario": scenario.name, "tau_peak_MPa": 0.8371234567}
-    stub("runner", run_scenario=run_scenario)
-    return calls
 
 
 def test_version(capsys):

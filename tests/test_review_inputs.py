@@ -6,14 +6,11 @@ import errno
 import json
 import pathlib
 import shutil
-import sys
-import types
 
 import h5py
 import numpy as np
 import pytest
 
-import tcd
 from tcd import bench, compare, config, figures, packing, runner, walls
 from tcd.simulation import BondLaw, Simulation, SolverSettings
 from tcd.cli import main
@@ -24,6 +21,13 @@ pytestmark = [pytest.mark.filterwarnings("ignore::DeprecationWarning"),
               pytest.mark.filterwarnings("ignore:.*summary.json missing:UserWarning")]
 
 SHEAR = 'name = "s"\nseeds = {seeds}\n[[stage]]\nkind = "shear"\nsample = "{sample}"\n'
+
+
+def _cli_scenario(tmp_path):
+    """tests/test_cli.py's scenario (a prepare and a shear stage) in a file."""
+    path = tmp_path / "cli.toml"
+    path.write_text(SCENARIO)
+    return path
 
 
 def _shear_scenario(tmp_path, sample, seeds=(1,)):
@@ -200,21 +204,20 @@ def test_bench_shear_takes_particles_or_a_sample_not_both(tmp_path, capsys):
 
 
 # --- tcd run, tcd info, tcd render: paths and settings -----------------------------------------
-def test_resume_into_a_file_says_it_is_a_file(tmp_path, capsys, scenario_file):
+def test_resume_into_a_file_says_it_is_a_file(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("x")
-    assert main(["run", str(scenario_file), "--out", str(afile), "--resume"]) == 2
+    assert main(["run", str(_cli_scenario(tmp_path)), "--out", str(afile), "--resume"]) == 2
     assert f"{afile} is a file, not a run directory" in capsys.readouterr().err
 
 
-def test_a_run_whose_output_folder_cannot_be_made_is_an_io_error(tmp_path, capsys,
-                                                                  scenario_file, stub):
+def test_a_run_whose_output_folder_cannot_be_made_is_an_io_error(tmp_path, capsys, stub):
     """`--out /proc/x`: the system's "no such file" was taken for a usage error (status 2,
     "[Errno 2] ..."), not the file system's refusal of an output (status 74, the path named)."""
     def run_scenario(*args, **kwargs):
         raise FileNotFoundError(errno.ENOENT, "No such file or directory", "/proc/x")
     stub("runner", run_scenario=run_scenario)
-    assert main(["run", str(scenario_file), "--out", str(tmp_path / "o")]) == 74
+    assert main(["run", str(_cli_scenario(tmp_path)), "--out", str(tmp_path / "o")]) == 74
     err = capsys.readouterr().err
     assert err.startswith("tcd: error: /proc/x: No such file or directory; the files written"), err
     # a scenario that does not exist stays a usage error
@@ -247,9 +250,9 @@ def test_a_shear_stage_s_two_geometry_problems_are_both_named(tmp_path, capsys):
     assert "stage[2].ring_height_mm: two rings of 50 mm" in err, err
 
 
-def test_a_key_set_twice_is_refused(tmp_path, capsys, scenario_file):
+def test_a_key_set_twice_is_refused(tmp_path, capsys):
     """The last of two `--set` of one key was taken silently."""
-    assert main(["info", str(scenario_file), "--set", "solver.tolerance=1e-5",
+    assert main(["info", str(_cli_scenario(tmp_path)), "--set", "solver.tolerance=1e-5",
                  "--set", "solver.tolerance=1e-6"]) == 2
     assert "solver.tolerance: set twice by --set (1e-05, then 1e-06)" in capsys.readouterr().err
 
@@ -276,37 +279,6 @@ def test_a_pouring_column_too_wide_to_hold_its_lattice_is_named():
     """A cylinder of 1e300 mm: NumPy's "Maximum allowed size exceeded"."""
     with pytest.raises(ValueError, match="lattice spacings .* in radius: at most 3000"):
         packing.lattice_column(np.full(10, 1e-3), 1e297, 0.0, np.random.default_rng(1))
-
-
-@pytest.fixture
-def scenario_file(tmp_path):
-    path = tmp_path / "cli.toml"
-    path.write_text(SCENARIO)
-    return path
-
-
-@pytest.fixture
-def stub(monkeypatch):
-    """stub("runner", run_scenario=f): `tcd.runner` is a fake module for this test (as
-    tests/test_cli.py's)."""
-    def install(name, **attrs):
-        module = types.ModuleType(f"tcd.{name}")
-        module.__dict__.update(attrs)
-        monkeypatch.setitem(sys.modules, f"tcd.{name}", module)
-        monkeypatch.setattr(tcd, name, module, raising=False)
-        return module
-    return install
-
-
-@pytest.fixture
-def runner_calls(stub):
-    calls = []
-
-    def run_scenario(scenario, out_dir, *, resume=False, progress=True, jobs=1):
-        calls.append(dict(scenario=scenario, out_dir=out_dir))
-        return {"scenario": scenario.name}
-    stub("runner", run_scenario=run_scenario)
-    return calls
 
 
 def test_the_figure_file_lists_name_what_the_commands_write(tmp_path):
