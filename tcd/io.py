@@ -189,6 +189,12 @@ def atomic_path(path, suffix: str = ".tmp"):
 _TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
 
 
+def stale_temporaries(directory) -> list[pathlib.Path]:
+    """The temporaries of atomic_path in `directory` (read only: a writer may be using one)."""
+    return [path for path in sorted(pathlib.Path(directory).glob(".*.tmp"))
+            if _TEMPORARY.fullmatch(path.name) and path.is_file()]
+
+
 def remove_stale_temporaries(directory) -> list[pathlib.Path]:
     """Remove the temporaries that writers killed hard (SIGKILL, a power cut) left in
     `directory` (atomic_path removes its own on any exception, but not when its process is

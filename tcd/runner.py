@@ -496,6 +496,8 @@ def run_info(out) -> str:
             text = _done_line(summary)
         elif ck.is_file():
             text = _checkpoint_line(ck, stages, live=bool(holder))
+            if not holder:
+                text += _left_behind(d, ck)
         elif batch.is_file() and d.is_dir():
             text = "in the batch (above)" + _shear_so_far(batch, seed)
         elif (d / "states.h5").is_file():
@@ -610,6 +612,26 @@ def _shear_so_far(path: pathlib.Path, seed: int | None = None) -> str:
                 f"{peak / 1e6:.4g} MPa at {at * 1e3:.3g} mm")
     except (OSError, ValueError, KeyError, IndexError, TypeError):
         return ""
+
+
+def _left_behind(sample_dir: pathlib.Path, ck: pathlib.Path) -> str:
+    """What a hard kill left in a stopped sample's folder that `--resume` clears: temporaries
+    of interrupted writes, and frames written to states.h5 after the last checkpoint."""
+    notes = []
+    temporaries = io.stale_temporaries(sample_dir)
+    if temporaries:
+        notes.append(f"{len(temporaries)} temporary file(s) of an interrupted write "
+                     f"({temporaries[0].name}{', ...' if len(temporaries) > 1 else ''})")
+    try:
+        recorded = io.checkpoint_meta(ck)[0].get("frames")
+        states = sample_dir / "states.h5"
+        extra = (io.frame_count(states) - int(recorded)
+                 if isinstance(recorded, int) and states.is_file() else 0)
+    except (OSError, ValueError, TypeError, AttributeError):
+        extra = 0
+    if extra > 0:
+        notes.append(f"{extra} frame(s) of states.h5 written after that checkpoint")
+    return f"; left behind: {' and '.join(notes)} (--resume removes them)" if notes else ""
 
 
 def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,

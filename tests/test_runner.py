@@ -1636,7 +1636,7 @@ def test_tcd_info_of_a_stopped_shear_gives_its_travel_stress_and_peak_so_far(mic
     assert so_far in text, text
 
 
-def test_a_finished_run_resumed_says_so_and_info_dates_checkpoints_by_their_file(
+def test_a_finished_run_resumed_says_so_and_info_says_when_and_what_a_kill_left(
         micro_run, tmp_path, capsys, monkeypatch):
     """Session 69's kill-and-resume trials: `--resume` of a finished run rewrote its summary
     without a word; with SOURCE_DATE_EPOCH set (reproducible bytes) `tcd info` said a
@@ -1656,3 +1656,14 @@ def test_a_finished_run_resumed_says_so_and_info_dates_checkpoints_by_their_file
         f.attrs["created"] = "1970-01-01T00:00:00+00:00"
     info = runner.run_info(copy)
     assert "checkpoint checkpoint.h5 written 20" in info and "1970" not in info, info
+    assert "left behind" not in info, info
+    # what a hard kill leaves, which the resume clears, is named (the trials' t2, t9, t16)
+    (copy / "sample_3" / ".states.h5.abcd1234.tmp").write_bytes(b"half a file")
+    with h5py.File(copy / "sample_3" / "checkpoint.h5", "a") as f:
+        meta = json.loads(f.attrs["meta"])
+        meta["frames"] -= 2
+        f.attrs["meta"] = json.dumps(meta)
+    info = runner.run_info(copy)
+    assert ("; left behind: 1 temporary file(s) of an interrupted write (.states.h5.abcd1234.tmp)"
+            " and 2 frame(s) of states.h5 written after that checkpoint (--resume removes them)"
+            ) in info, info
