@@ -169,6 +169,35 @@ def test_a_resting_contact_warm_started_from_its_last_impulse_converges_at_once(
     sim.close()
 
 
+@pytest.mark.parametrize("schedule", ["serial", "coloured"])
+def test_each_contact_of_a_grain_is_warm_started_from_its_own_last_impulse(schedule):
+    """Two spheres stacked on a plane: the lower one has two contacts, the sphere above (m g H)
+    and the floor (2 m g H). Each is warm-started from the impulse of the same pair (i, j) the
+    step before, so a settled stack converges in one sweep (session 69's mutation study: a
+    match on i alone, which seeds the pair with the floor's 2 m g H, passed every test, their
+    grains having one contact each)."""
+    r, h = 0.004, 2e-4
+    sim = Simulation([r, r], [[0, 0, r], [0, 0, 3 * r]], walls=[walls.plane((0, 0, 0), (0, 0, 1))],
+                     settings=SolverSettings(tolerance=1e-9 if backend.precision() == "f64"
+                                             else 1e-5, max_sweeps=100, check_every=1,
+                                             schedule=schedule, time_step=h),
+                     domain=((-0.01,) * 3, (0.01,) * 3))
+    try:
+        sim.step(3)
+        for _ in range(3):
+            sim.step()
+            assert sim.last.sweeps == 1, sim.last.sweeps
+        m = 1.0 / sim.inverse_masses()[0][0]
+        c = sim.contact_arrays()
+        wall = c["j"] >= 2
+        # (each impulse along the vertical: its sign is the list's convention, i to j)
+        pair_r, wall_r = np.abs(c["impulse"][~wall][0]), np.abs(c["impulse"][wall][0])
+        np.testing.assert_allclose(pair_r, [0, 0, m * 9.81 * h], rtol=1e-4, atol=1e-12)
+        np.testing.assert_allclose(wall_r, [0, 0, 2 * m * 9.81 * h], rtol=1e-4, atol=1e-12)
+    finally:
+        sim.close()
+
+
 # --- session 43's mutation audit of the schedules, batching and the grid ------------------
 def test_the_warm_start_is_extrapolated_once():
     """With warm_start_extrapolation c the step starts each bond, and each contact that carried
