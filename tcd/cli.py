@@ -71,8 +71,7 @@ def _writing():
     except BrokenPipeError:
         raise
     except OSError as exc:
-        where = exc.filename if exc.filename is not None else ""
-        raise UsageError(f"{where + ': ' if where else ''}{exc.strerror or exc}") from None
+        raise UsageError(_os_message(exc)) from None
 
 
 def _existing_results(out_dir: Path) -> list[Path]:
@@ -810,15 +809,19 @@ def _schedule_options(parser) -> None:
                         "waits for the device)")
 
 
+def _os_message(exc: OSError) -> str:
+    """`PATH: reason` of the file system's refusal (the reason alone when it names no path)."""
+    where = exc.filename if exc.filename is not None else ""
+    return f"{where + ': ' if where else ''}{exc.strerror or exc}"
+
+
 def _io_error(exc: OSError, args) -> int:
     """The file system refused (read-only, full, a name too long, a file where a folder must
     be): one line naming the path; every output is written atomically, so what was there
     before is intact."""
-    where = exc.filename if exc.filename is not None else ""
-    reason = exc.strerror or str(exc)
     hint = ("; the files written before are intact: once this is fixed, run it again "
             "(with --resume if it had written a checkpoint)" if args.command == "run" else "")
-    print(f"tcd: error: {where + ': ' if where else ''}{reason}{hint}", file=sys.stderr)
+    print(f"tcd: error: {_os_message(exc)}{hint}", file=sys.stderr)
     return EXIT_IO
 
 

@@ -496,8 +496,6 @@ def run_info(out) -> str:
             text = _done_line(summary)
         elif ck.is_file():
             text = _checkpoint_line(ck, stages, live=bool(holder))
-            if not holder:
-                text += _left_behind(d, ck)
         elif batch.is_file() and d.is_dir():
             text = "in the batch (above)" + _shear_so_far(batch, seed)
         elif (d / "states.h5").is_file():
@@ -614,20 +612,21 @@ def _shear_so_far(path: pathlib.Path, seed: int | None = None) -> str:
         return ""
 
 
-def _left_behind(sample_dir: pathlib.Path, ck: pathlib.Path) -> str:
+def _left_behind(sample_dir: pathlib.Path, meta: dict) -> str:
     """What a hard kill left in a stopped sample's folder that `--resume` clears: temporaries
-    of interrupted writes, and frames written to states.h5 after the last checkpoint."""
+    of interrupted writes, and frames written to states.h5 after the last checkpoint (whose
+    `meta` records the frames it had)."""
     notes = []
     temporaries = io.stale_temporaries(sample_dir)
     if temporaries:
         notes.append(f"{len(temporaries)} temporary file(s) of an interrupted write "
                      f"({temporaries[0].name}{', ...' if len(temporaries) > 1 else ''})")
     try:
-        recorded = io.checkpoint_meta(ck)[0].get("frames")
+        recorded = meta.get("frames")
         states = sample_dir / "states.h5"
         extra = (io.frame_count(states) - int(recorded)
                  if isinstance(recorded, int) and states.is_file() else 0)
-    except (OSError, ValueError, TypeError, AttributeError):
+    except (OSError, ValueError):       # a states file that cannot be read: nothing said
         extra = 0
     if extra > 0:
         notes.append(f"{extra} frame(s) of states.h5 written after that checkpoint")
@@ -640,7 +639,7 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
     into the run (`live`), "running, its last checkpoint in ..."; a shear stage's line adds
     the ring's travel, the stress and the peak so far."""
     try:
-        meta, created = io.checkpoint_meta(path)
+        meta, _ = io.checkpoint_meta(path)
         if batched:
             phase = meta["phases"][0]       # one per sample, stepped together
             where = f"the shear of seeds {', '.join(map(str, meta['seeds']))}"
@@ -665,13 +664,12 @@ def _checkpoint_line(path: pathlib.Path, stages: list, *, batched: bool = False,
             text += _shear_so_far(path)
         # the file's own time: its `created` attribute follows SOURCE_DATE_EPOCH when set (for
         # reproducible bytes), which made this line say "written 1970-01-01..."
-        try:
-            written = _dt.datetime.fromtimestamp(path.stat().st_mtime, _dt.timezone.utc)
-            created = written.isoformat(timespec="seconds")
-        except OSError:
-            pass
-        text += f"; checkpoint {path.name} written {created or '?'}"
-        return text + ("" if batched else _branch_note(meta.get("result")))
+        written = _dt.datetime.fromtimestamp(path.stat().st_mtime, _dt.timezone.utc)
+        text += f"; checkpoint {path.name} written {written.isoformat(timespec='seconds')}"
+        if batched:
+            return text
+        return (text + _branch_note(meta.get("result"))
+                + ("" if live else _left_behind(path.parent, meta)))
     except KeyError as exc:     # a checkpoint file that is not a run's (a prepared sample)
         return (f"a checkpoint that cannot be read ({path}: its meta lacks {exc.args[0]!r}: "
                 "not a run's checkpoint)")

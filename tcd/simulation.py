@@ -501,9 +501,8 @@ class Simulation:
             mass = density * 4.0 / 3.0 * math.pi * radius**3
             inv_mass = 1.0 / mass
             inv_inertia = 1.0 / (0.4 * mass * radius**2)
-            real = backend.numpy_real()
-            usable = ((inv_mass.astype(real) > 0) & np.isfinite(inv_mass.astype(real))
-                      & (inv_inertia.astype(real) > 0) & np.isfinite(inv_inertia.astype(real)))
+            stored = [v.astype(backend.numpy_real()) for v in (inv_mass, inv_inertia)]
+            usable = np.logical_and.reduce([(v > 0) & np.isfinite(v) for v in stored])
         if fixed is not None:
             fixed = np.asarray(fixed, dtype=bool)
             inv_mass[fixed] = 0.0
@@ -1105,12 +1104,14 @@ class Simulation:
         return int(self.bonds.total[None]) - int(self.bonds.broken[None])
 
     # ---------------------------------------------------------------- particle numbering
+    def _system_ids(self) -> np.ndarray:
+        """Each particle's system, from the host's system_start (no read of the field)."""
+        return np.repeat(np.arange(self.systems), np.diff(self.system_start))
+
     def _identity_index(self) -> np.ndarray:
         """Each particle's index within its own system: the sample_index of a simulation whose
         particles were never renumbered."""
-        n = self.n
-        system = np.repeat(np.arange(self.systems), np.diff(self.system_start))
-        return (np.arange(n) - self.system_start[system]).astype(np.int32)
+        return (np.arange(self.n) - self.system_start[self._system_ids()]).astype(np.int32)
 
     def _set_sample_index(self, index) -> None:
         self.sample_index = self._checked_sample_index(index)
@@ -1473,7 +1474,7 @@ class Simulation:
     def set_positions(self, x) -> None:
         x = per_particle("positions", x, self.n, broadcast=False)
         # as the constructor: two grains of one system at one centre have no contact normal
-        _check_distinct_centres(np.asarray(x, float), get(self.particles.system, self.n))
+        _check_distinct_centres(np.asarray(x, float), self._system_ids())
         put(self.particles.x, x)
         self._neighbours_valid = False
 

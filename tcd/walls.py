@@ -93,11 +93,17 @@ class Wall:
                              f"got {self.extent!r}")
         object.__setattr__(self, "extent", (float(ext[0]), float(ext[1])))
         d = np.asarray(self.direction, dtype=float)
-        scale = float(np.max(np.abs(d))) if d.size else 0.0
-        if not scale > 0:
-            raise ValueError(f"wall {self.name!r}: direction must be a non-zero vector")
-        d = d / scale           # (so that the norm of (1e300, 1e300, 0) does not overflow)
-        object.__setattr__(self, "direction", tuple(float(c) for c in d / np.linalg.norm(d)))
+        with np.errstate(over="ignore", under="ignore"):
+            n = float(np.linalg.norm(d))
+        if not 0 < n < math.inf:
+            # a norm that overflows ((1e300, 1e300, 0)) or underflows: the vector scaled first
+            # (only then: a rescaled vector normalises differently in the last bit)
+            scale = float(np.max(np.abs(d))) if d.size else 0.0
+            if not scale > 0:
+                raise ValueError(f"wall {self.name!r}: direction must be a non-zero vector")
+            d = d / scale
+            n = float(np.linalg.norm(d))
+        object.__setattr__(self, "direction", tuple(float(c) for c in d / n))
         if self.kind == "cylinder":
             if not self.radius > 0:
                 raise ValueError(f"wall {self.name!r}: cylinder radius must be positive")

@@ -395,6 +395,9 @@ def test_wall_directions_of_huge_components_and_ignored_frequencies():
     motion's frequency was ignored without a word; the warnings pointed into tcd's files."""
     assert walls.plane((0, 0, 0), (1e300, 1e300, 0)).direction == pytest.approx(
         (2 ** -0.5, 2 ** -0.5, 0.0))
+    # an ordinary normal is normalised as before, to the last bit (a rescaled vector is not)
+    d = np.array([np.sin(0.3), 0.0, np.cos(0.3)])
+    assert walls.plane((0, 0, 0), d).direction == tuple(float(c) for c in d / np.linalg.norm(d))
     with pytest.warns(UserWarning, match="ignores its frequency") as record:
         walls.plane((0, 0, 0), (0, 0, 1), motion="constant", frequency=-5)
     assert record[0].filename == __file__
