@@ -188,3 +188,17 @@ def test_every_scenario_key_the_docs_name_exists():
                         wrong.append(f"{doc.name}: [{section}] {key} = {value}: {own}")
     assert checked > 20
     assert not wrong, wrong
+
+
+def test_the_readme_names_the_pythons_that_pyproject_admits():
+    """The Quick start's "Python 3.11, 3.12 or 3.13" is exactly the range of
+    `requires-python`, so that a reader on another Python learns it before pip does."""
+    import tomllib
+    spec = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["requires-python"]
+    bounds = dict(re.fullmatch(r"\s*(>=|<)\s*3\.(\d+)\s*", part).groups() for part in spec.split(","))
+    admitted = {f"3.{m}" for m in range(int(bounds[">="]), int(bounds["<"]))}
+    readme = (ROOT / "README.md").read_text()
+    sentence = re.search(r"Fresh machine, (Python [^(]*)\(", readme).group(1)
+    assert set(re.findall(r"3\.\d+", sentence)) == admitted, (sentence, spec)
+    import sys
+    assert f"3.{sys.version_info.minor}" in admitted
