@@ -36,8 +36,6 @@ import pathlib
 import re
 import shutil
 
-import h5py
-
 from . import io
 from .protocols import Phase
 from .runner import LOCK_FILE, shared_lock
@@ -289,8 +287,7 @@ def _write_branch(scenario, source: pathlib.Path, out: pathlib.Path, plans: dict
         states = dst / "states.h5"
         if states.is_file():        # its scenario: the one its frames go on under
             with io.atomic_path(states) as tmp:
-                shutil.copyfile(states, tmp)
-                with h5py.File(tmp, "a") as f:
+                with io.hdf5_writer(tmp, source=states, size=states.stat().st_size) as f:
                     f.attrs["scenario"] = scenario.text
                     f.attrs["branched_from"] = str(source.resolve())
         io.save_checkpoint(dst / "checkpoint.h5", arrays, meta)

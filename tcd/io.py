@@ -2,12 +2,14 @@
 
 Every file tcd writes is replaced atomically: the new content goes to a temporary file in the
 same directory (``.<name>.<random>.tmp``), which is flushed, fsync'ed and then ``os.replace``d
-over the target; the directory is fsync'ed afterwards. Appending a frame copies the existing file
-to the temporary file first and appends there. Invariant: whatever interrupts a write (an
-exception, Ctrl-C, SIGKILL, a full disk), the target path holds either the complete previous file
-or the complete new one, never a mix. An exception removes the temporary file; a SIGKILL may leave
-one behind (``.*.tmp``), which is harmless and may be deleted. The cost of this guarantee is that
-an append rewrites the whole file, so states files are meant for snapshots, not every step.
+over the target; the directory is fsync'ed afterwards. HDF5 files are built in memory and written
+to the temporary file in one write (``hdf5_writer``; files larger than ``IN_MEMORY_BYTES`` are
+written by HDF5 on the disk); appending a frame reads the existing file in and appends there.
+Invariant: whatever interrupts a write (an exception, Ctrl-C, SIGKILL, a full disk), the target
+path holds either the complete previous file or the complete new one, never a mix. An exception
+removes the temporary file; a SIGKILL may leave one behind (``.*.tmp``), which is harmless and
+may be deleted. The cost of this guarantee is that an append rewrites the whole file, so states
+files are meant for snapshots, not every step.
 There is one writer per file; two processes appending to the same file concurrently lose frames.
 
 Schema version 1
@@ -177,12 +179,64 @@ def atomic_path(path, suffix: str = ".tmp"):
         os.chmod(tmp, mode)
         _fsync_file(tmp)
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
+        if isinstance(exc, OSError) and type(exc).__module__ == "builtins" and \
+                exc.errno is not None and exc.filename in (None, tmp):
+            # the disk full (or refusing) while the temporary was written: name the target
+            raise type(exc)(exc.errno, exc.strerror, target) from None
         raise
     _fsync_dir(directory)
 
+
+
+#: HDF5 files up to this size are built in memory by hdf5_writer (it holds up to three copies);
+#: larger ones are written by HDF5 on the disk, after a check of the free space
+IN_MEMORY_BYTES = 256 * 2**20
+
+
+@contextlib.contextmanager
+def hdf5_writer(tmp, source=None, size: int = 0):
+    """Yield a writable h5py.File to go to the file `tmp`: empty, or a copy of the file `source`
+    (to append to); `size`: the bytes the file will about hold.
+
+    Up to IN_MEMORY_BYTES the file is held in memory (HDF5's core driver without a backing
+    store) and its image goes to `tmp` in one write of Python's own, so HDF5 never writes to
+    the disk: a disk that fills up fails in Python with a plain OSError (errno ENOSPC), where
+    HDF5's own writes failed in its close, left the library holding the file, printed
+    "Exception ignored" tracebacks naming the temporary, and once ended the process in a
+    segmentation fault (a run on a full file system, session 70). Larger files are written by
+    HDF5 on the disk once the free space has been seen to hold them. Used inside atomic_path,
+    which names the target in the error and removes `tmp`."""
+    if size > IN_MEMORY_BYTES:
+        if source is not None:
+            shutil.copyfile(source, tmp)
+        grows = size - os.path.getsize(tmp)
+        if shutil.disk_usage(os.path.dirname(os.path.abspath(tmp))).free < 1.1 * grows + 2**24:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), tmp)
+        with h5py.File(tmp, "a" if source is not None else "w") as f:
+            yield f
+        return
+    if source is None:
+        f = h5py.File(tmp, "w", driver="core", backing_store=False)
+    else:
+        # h5py has no call that opens a file image; HDF5 takes the image only under a name
+        # that no file on the disk has
+        fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+        fapl.set_fapl_core(backing_store=False)
+        with open(source, "rb") as fh:
+            fapl.set_file_image(fh.read())
+        name = os.fsencode(os.fspath(tmp)) + b".image"
+        f = h5py.File(h5py.h5f.open(name, h5py.h5f.ACC_RDWR, fapl=fapl))
+    try:
+        yield f
+        f.flush()
+        image = f.id.get_file_image()
+    finally:
+        f.close()
+    with open(tmp, "wb") as fh:
+        fh.write(image)
 
 # the name atomic_path gives its temporary: "." + the target's name + "." + mkstemp's eight
 # characters + ".tmp"
@@ -587,13 +641,13 @@ def append_frame(path, frame: dict, *, time, step, stage, scenario_text: str = "
         with _open_tcd(path, FILE_STATES) as f:
             index = len(_frame_names(f, path))
         with atomic_path(path) as tmp:
-            shutil.copyfile(path, tmp)
-            with h5py.File(tmp, "a") as f:
+            size = os.path.getsize(path) + sum(arr.nbytes for _, arr, _ in prepared)
+            with hdf5_writer(tmp, source=path, size=size) as f:
                 _write_frame(f, index, prepared, time, step, stage)
     else:
         index = 0
         with atomic_path(path) as tmp:
-            with h5py.File(tmp, "w") as f:
+            with hdf5_writer(tmp, size=sum(arr.nbytes for _, arr, _ in prepared)) as f:
                 _write_header(f, FILE_STATES, tcd_version)
                 f.attrs["scenario"] = str(scenario_text)
                 f.create_group("frames")
@@ -645,7 +699,7 @@ def keep_frames(path, count: int) -> int:
     if count == len(names):
         return 0
     with atomic_path(path) as tmp:
-        with h5py.File(path, "r") as src, h5py.File(tmp, "w") as dst:
+        with h5py.File(path, "r") as src, hdf5_writer(tmp, size=os.path.getsize(path)) as dst:
             for key, value in src.attrs.items():
                 dst.attrs[key] = value
             for key in src:
@@ -723,7 +777,7 @@ def write_series(path_h5, series: dict, *, units: dict | None = None, attrs: dic
                                  f"only 1-D series fit a CSV column")
 
     with atomic_path(path_h5) as tmp:
-        with h5py.File(tmp, "w") as f:
+        with hdf5_writer(tmp, size=sum(arr.nbytes for arr in arrays.values())) as f:
             _write_header(f, FILE_SERIES)
             for name, value in root_attrs.items():
                 f.attrs[name] = value
@@ -776,7 +830,7 @@ def save_checkpoint(path, arrays: dict, meta: dict) -> None:
     except TypeError as exc:
         raise ValueError(f"{where}: meta is not JSON serialisable: {exc}") from exc
     with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
+        with hdf5_writer(tmp, size=sum(arr.nbytes for arr in prepared.values())) as f:
             _write_header(f, FILE_CHECKPOINT)
             f.attrs["meta"] = meta_text
             group = f.create_group("arrays")

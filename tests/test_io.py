@@ -283,6 +283,89 @@ def test_sigkill_while_appending_never_corrupts_the_target(tmp_path):
     assert all(name.startswith(".states.h5.") for name in leftovers)
 
 
+FULL_DISK_CHILD = """
+import importlib.util, os, resource, signal, sys
+import numpy as np
+spec = importlib.util.spec_from_file_location("tcd_io_child", sys.argv[1])
+io = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(io)
+d = sys.argv[2]
+states = os.path.join(d, "states.h5")
+io.append_frame(states, {"particles/x": np.zeros((10, 3))}, time=0.0, step=0, stage="s")
+io.save_checkpoint(os.path.join(d, "c.h5"), {"x": np.zeros(3)}, {"step": 0})
+io.write_series(os.path.join(d, "s.h5"), {"t": np.zeros(3)})
+# the disk "fills up" 50 kB past the largest file: writes beyond it fail (EFBIG)
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+limit = max(os.path.getsize(os.path.join(d, f)) for f in os.listdir(d)) + 50000
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+x = np.random.default_rng(1).random((20000, 3))
+writes = {"append": lambda: io.append_frame(states, {"particles/x": x}, time=1.0, step=1, stage="s"),
+          "checkpoint": lambda: io.save_checkpoint(os.path.join(d, "c.h5"), {"x": x}, {"step": 1}),
+          "series": lambda: io.write_series(os.path.join(d, "s.h5"), {"t": x[:, 0]})}
+for what, write in writes.items():
+    try:
+        write()
+        print(what, "written")
+    except OSError as exc:
+        print(what, exc.errno, os.path.basename(exc.filename))
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="needs RLIMIT_FSIZE (POSIX)")
+def test_a_full_disk_is_a_plain_oserror_naming_the_file_and_leaves_it_whole(tmp_path):
+    """A write that the file system refuses part-way (here a file-size limit: EFBIG, as ENOSPC
+    on a full disk) fails with an OSError naming the target, not the temporary, and leaves
+    the earlier file whole and no temporary behind. HDF5 writing the file itself failed in its
+    close instead: a RuntimeError (so `tcd run` printed a traceback), "Exception ignored"
+    noise, and once a segmentation fault (a run on a full tmpfs, session 70)."""
+    import errno
+    child = subprocess.run([sys.executable, "-c", FULL_DISK_CHILD, IO_SOURCE, str(tmp_path)],
+                           capture_output=True, text=True, timeout=120)
+    assert child.returncode == 0, child.stderr
+    assert child.stdout.split("\n")[:3] == [f"append {errno.EFBIG} states.h5",
+                                             f"checkpoint {errno.EFBIG} c.h5",
+                                             f"series {errno.EFBIG} s.h5"], child.stdout
+    assert "Exception ignored" not in child.stderr and "Traceback" not in child.stderr, child.stderr
+    assert sorted(os.listdir(tmp_path)) == ["c.h5", "s.h5", "states.h5"]
+    assert io.frame_count(tmp_path / "states.h5") == 1
+    assert io.load_checkpoint(tmp_path / "c.h5")[1] == {"step": 0}
+    assert np.array_equal(io.read_series(tmp_path / "s.h5")["t"], np.zeros(3))
+
+
+def test_files_past_the_in_memory_size_are_written_by_hdf5_once_the_disk_holds_them(
+        tmp_path, monkeypatch):
+    """Above io.IN_MEMORY_BYTES the files are written by HDF5 on the disk (what would be
+    held three times in memory): the same contents; and where the free space is short, an
+    OSError (ENOSPC) naming the target before a byte is written."""
+    import errno
+    import shutil
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder, limit in ((a, io.IN_MEMORY_BYTES), (b, 0)):
+        folder.mkdir()
+        monkeypatch.setattr(io, "IN_MEMORY_BYTES", limit)
+        for k in range(3):
+            io.append_frame(folder / "states.h5", make_frame(seed=k), time=0.1 * k, step=k,
+                            stage="pour")
+        assert io.keep_frames(folder / "states.h5", 2) == 1
+        _write_checkpoint(folder / "c.h5")
+        _write_series(folder / "s.h5")
+    for k in range(2):
+        fa, fb = io.read_frame(a / "states.h5", k), io.read_frame(b / "states.h5", k)
+        assert fa.keys() == fb.keys()
+        assert all(np.array_equal(fa[key], fb[key], equal_nan=np.asarray(fa[key]).dtype.kind == "f")
+                   for key in fa)
+    assert io.frame_count(b / "states.h5") == 2
+    ca, cb = io.load_checkpoint(a / "c.h5"), io.load_checkpoint(b / "c.h5")
+    assert ca[1] == cb[1] and all(np.array_equal(ca[0][k], cb[0][k]) for k in ca[0])
+    sa, sb = io.read_series(a / "s.h5"), io.read_series(b / "s.h5")
+    assert all(np.array_equal(sa[k], sb[k]) for k in sa)
+    before = (b / "states.h5").read_bytes()
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**12, 10**12, 0))
+    with pytest.raises(OSError) as caught:
+        io.append_frame(b / "states.h5", make_frame(seed=9), time=1.0, step=9, stage="pour")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(b / "states.h5")
+    assert (b / "states.h5").read_bytes() == before and temp_files(b) == []
+
 def test_atomic_path_removes_temp_on_error_and_replaces_on_success(tmp_path):
     path = tmp_path / "data.txt"
     path.write_text("old")
