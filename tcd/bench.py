@@ -187,9 +187,9 @@ def pour(particles: int = 2600, time: float = 1.0, arch: str = "cpu", precision:
     `acceleration`: the solver's
     (SolverSettings); `threads` only
     counts for the partitioned schedule. `trace`: a CSV path for one row per timed step (write_trace)."""
-    _init(arch, precision)
-    _check_steps(time)
+    _check_steps(time)              # what can be refused is, before Taichi starts
     check_trace(trace)
+    _init(arch, precision)
     try:
         sim = pour_setup(particles, seed, tolerance, schedule=schedule, threads=threads,
                          colouring=colouring, check_every=check_every, sweep_order=sweep_order,
@@ -312,8 +312,8 @@ def shear(particles: int = 5200, time: float = 0.2, arch: str = "cpu", precision
     if not 1 <= samples <= MAX_SYSTEMS:
         raise ValueError(f"samples must be 1 to {MAX_SYSTEMS} (the systems one simulation "
                          f"batches), got {samples}")
-    _init(arch, precision)
     check_trace(trace)
+    _init(arch, precision)
     seeds = [seed + k for k in range(samples)]
     paths = [pathlib.Path(sample.format(seed=s)) if sample else bench_sample(particles, s, tolerance)
              for s in seeds]

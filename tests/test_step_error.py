@@ -24,7 +24,9 @@ def sheared_pile():
     return sim
 
 
-def test_a_loose_tolerance_leaves_the_step_off_its_solution(benchmark_script):
+def test_a_loose_tolerance_leaves_the_step_off_its_solution(benchmark_script, precision):
+    if precision == "f32":
+        pytest.skip("its reference is solved to 1e-12, which f32's rounding does not reach")
     step_error = benchmark_script("step_error").step_error
     sim = sheared_pile()
     state, t, k = sim.state_dict(), sim.time, sim.step_index
