@@ -190,12 +190,13 @@ def atomic_path(path, suffix: str = ".tmp"):
     _fsync_dir(directory)
 
 
-
 #: HDF5 files up to this size are built in memory by hdf5_writer; larger ones are written by
 #: HDF5 on the disk, after a check of the free space (in memory, an append copies the file
 #: five times, which costs more than the disk's one copy once the file is large: an append
 #: to a states file of 100-250 MB took 0.4-3 s against 0.15-0.4 s on the disk, session 70)
 IN_MEMORY_BYTES = 32 * 2**20
+#: the memory a file held by hdf5_writer grows by at a time
+_CORE_BLOCK = 2**20
 
 
 @contextlib.contextmanager
@@ -221,12 +222,12 @@ def hdf5_writer(tmp, source=None, size: int = 0):
             yield f
         return
     if source is None:
-        f = h5py.File(tmp, "w", driver="core", block_size=2**20, backing_store=False)
+        f = h5py.File(tmp, "w", driver="core", block_size=_CORE_BLOCK, backing_store=False)
     else:
         # h5py has no call that opens a file image; HDF5 takes the image only under a name
         # that no file on the disk has
         fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
-        fapl.set_fapl_core(block_size=2**20, backing_store=False)   # grown 1 MiB at a time
+        fapl.set_fapl_core(block_size=_CORE_BLOCK, backing_store=False)
         with open(source, "rb") as fh:
             fapl.set_file_image(fh.read())
         name = os.fsencode(os.fspath(tmp)) + b".image"
@@ -239,6 +240,7 @@ def hdf5_writer(tmp, source=None, size: int = 0):
         f.close()
     with open(tmp, "wb") as fh:
         fh.write(image)
+
 
 # the name atomic_path gives its temporary: "." + the target's name + "." + mkstemp's eight
 # characters + ".tmp"
