@@ -495,6 +495,32 @@ def _datasets(group: h5py.Group) -> dict:
     return out
 
 
+def check_readable(path) -> None:
+    """Read the tcd file `path` whole (every attribute, every dataset, checksums checked) and
+    raise ValueError naming it when a part cannot be read: a file damaged on disk or by a
+    program other than tcd (tcd's own writes are atomic). h5py reports such damage as
+    OSError, RuntimeError ("Object visitation failed") or KeyError, depending on the byte hit;
+    a resumed run checks the files it goes on from with it before it writes anything."""
+    path = os.fspath(path)
+
+    def visit(name, obj):
+        dict(obj.attrs)
+        if isinstance(obj, h5py.Dataset):
+            _read(obj)
+
+    try:
+        with _open_tcd(path, None) as f:
+            dict(f.attrs)
+            f.visititems(visit)
+    except (OSError, RuntimeError, KeyError) as exc:
+        if isinstance(exc, FileNotFoundError):
+            raise
+        text = str(exc)
+        raise ValueError(text if text.startswith(path) else
+                         f"{path}: cannot read ({type(exc).__name__}: {text}); the file is "
+                         "damaged") from None
+
+
 def _units_attr(obj) -> str:
     u = obj.attrs.get("units", "")
     return u.decode() if isinstance(u, bytes) else str(u)

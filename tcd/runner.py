@@ -151,6 +151,7 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     if resume:
+        check_resumable_samples(out, scenario.seeds)
         progressed = out.is_dir() and (any(out.glob("sample_*/checkpoint.h5"))
                                        or any(out.glob("sample_*/summary.json")))
         if not progressed:
@@ -160,8 +161,9 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
             if not _stopped_before_first_checkpoint(out):
                 raise FileNotFoundError(f"{out}: nothing to resume (no checkpoint found)")
             # a fresh run is refused there (it holds results): every sample starts over
-            print(f"tcd: note: {out}: no checkpoint yet (the run stopped before its first): "
-                  "every sample starts from the beginning", file=sys.stderr)
+            print(f"tcd: note: {out}: no checkpoint yet (the run stopped before its first, "
+                  "or its sample folders were moved away): every sample starts from the "
+                  "beginning", file=sys.stderr)
     t_start = time.perf_counter()
     done = {}
     for seed in scenario.seeds:
@@ -238,6 +240,46 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
         summary["jobs"] = jobs
         io.write_json(out / "summary.json", summary)
         return summary
+
+
+#: what a sample's folder holds once one of its stages has ended; its checkpoint is written
+#: before them (_run_sample), so a folder that holds them and no checkpoint has lost it
+STAGE_RESULTS = ("prepared.h5", "*_series.h5", "*_series.csv")
+#: the tcd files an unfinished sample's resume goes on from or keeps as its results
+RESUMED_FILES = ("checkpoint.h5", "states.h5", "prepared.h5", "*_series.h5")
+
+
+def check_resumable_samples(out: pathlib.Path, seeds) -> None:
+    """Before a resume writes anything: refuse, naming the file, an unfinished sample of
+    `seeds` whose checkpoint.h5 is gone while the results of a stage are there (its resume
+    started the sample over and overwrote them: session 70's probe), or one of whose files
+    (RESUMED_FILES) cannot be read whole (a damaged checkpoint stopped the resume with a
+    traceback; a damaged states.h5 or prepared.h5 was kept unreadable, the run ending with
+    status 0). A sample folder moved away runs again from the start."""
+    for seed in seeds:
+        d = out / f"sample_{seed}"
+        if not d.is_dir() or (d / "summary.json").exists():
+            continue
+        if not (d / "checkpoint.h5").exists():
+            results = sorted({p.name for pattern in STAGE_RESULTS for p in d.glob(pattern)})
+            if results:
+                raise ValueError(
+                    f"{d / 'checkpoint.h5'} is missing, yet the sample holds the results of a "
+                    f"stage ({', '.join(results)}): a resume cannot tell where it stopped, and "
+                    "running it from the start would overwrite them; put its checkpoint back, "
+                    f"or move {d} away to run that sample again from the start")
+        for path in sorted({p for pattern in RESUMED_FILES for p in d.glob(pattern)}):
+            if path.is_file():
+                check_whole(path, f"move {d} away to run that sample again from the start")
+
+
+def check_whole(path: pathlib.Path, remedy: str) -> None:
+    """io.check_readable(path), its refusal ending with what a resume cannot do and `remedy`."""
+    try:
+        io.check_readable(path)
+    except ValueError as exc:
+        raise ValueError(f"{exc}: a resume cannot go on from it or keep it; restore it from a "
+                         f"copy, or {remedy}") from None
 
 
 def _stopped_before_first_checkpoint(out: pathlib.Path) -> bool:
@@ -498,6 +540,10 @@ def run_info(out) -> str:
             text = _checkpoint_line(ck, stages, live=bool(holder))
         elif batch.is_file() and d.is_dir():
             text = "in the batch (above)" + _shear_so_far(batch, seed)
+        elif d.is_dir() and any(d.glob(pattern) for pattern in STAGE_RESULTS):
+            text = ("its checkpoint.h5 is missing, yet it holds the results of a stage: "
+                    "--resume refuses it (put the checkpoint back, or move the folder away "
+                    "to run the sample again)")
         elif (d / "states.h5").is_file():
             text = "started, no checkpoint yet"
         elif isinstance(begun, list) and seed not in begun:
@@ -714,6 +760,10 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     out = pathlib.Path(out_dir)
     ck_path = out / "batch_checkpoint.h5"
     from_start = not resume
+    if resume and ck_path.exists():     # the files it goes on from, whole
+        for path in [ck_path] + [out / f"sample_{seed}" / "states.h5" for seed in seeds]:
+            if path.is_file():
+                check_whole(path, f"start the batch again in a new --out directory")
     if resume and not ck_path.exists():
         if not _stopped_before_first_checkpoint(out):
             raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")

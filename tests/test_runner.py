@@ -1670,3 +1670,93 @@ def test_a_finished_run_resumed_says_so_and_info_says_when_and_what_a_kill_left(
     assert ("; left behind: 1 temporary file(s) of an interrupted write (.states.h5.abcd1234.tmp)"
             " and 2 frame(s) of states.h5 written after that checkpoint (--resume removes them)"
             ) in info, info
+
+
+def _damage(path: pathlib.Path) -> None:
+    """4096 bytes of 0xff over the middle of `path` (a disk's or another program's doing)."""
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 4096] = b"\xff" * 4096
+    path.write_bytes(bytes(data))
+
+
+def _unfinished(out: pathlib.Path, run: pathlib.Path) -> pathlib.Path:
+    """A copy of the finished run `out` whose sample and run summaries are gone: a run stopped
+    after its last checkpoint, which --resume finishes."""
+    import shutil
+    shutil.copytree(out, run)
+    for path in (run / "summary.json", run / "sample_3" / "summary.json"):
+        path.unlink()
+    return run
+
+
+@pytest.mark.parametrize("name", ["checkpoint.h5", "states.h5", "prepared.h5"])
+def test_a_resume_refuses_a_sample_whose_files_are_damaged_writing_nothing(micro_run, tmp_path,
+                                                                          capsys, name):
+    """Session 70's probe: a checkpoint.h5 with 4096 bytes overwritten stopped --resume with a
+    traceback (RuntimeError "Object visitation failed", exit 1); a damaged states.h5 or
+    prepared.h5 was kept as it was, unreadable, and the run ended with status 0. Now the
+    resume reads each file it goes on from whole first, and refuses with one line naming the
+    file and what to do, having written nothing."""
+    scenario, out = micro_run
+    run = _unfinished(out, tmp_path / "run")
+    _damage(run / "sample_3" / name)
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {run / 'sample_3' / name}: ") and err.count("\n") == 1, err
+    assert "damaged" in err and f"move {run / 'sample_3'} away" in err, err
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
+    # the same run undamaged resumes to the end
+    whole = _unfinished(out, tmp_path / "whole")
+    assert run_tcd(["run", str(scenario), "--out", str(whole), "--resume"]) == 0
+    assert (whole / "summary.json").is_file()
+
+
+def test_a_resume_refuses_a_sample_that_lost_its_checkpoint_after_a_stage_ended(micro_run,
+                                                                               tmp_path, capsys):
+    """Session 70's probe: with checkpoint.h5 deleted after the preparation had ended, --resume
+    took the run for one stopped before its first checkpoint and ran the sample again from the
+    start, overwriting prepared.h5 and the preparation's series. Now it is refused (nothing
+    written) and `tcd info` says why; a sample folder moved away runs again from the start."""
+    scenario, out = micro_run
+    run = _unfinished(out, tmp_path / "run")
+    (run / "sample_3" / "checkpoint.h5").unlink()
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {run / 'sample_3' / 'checkpoint.h5'} is missing, yet "
+                          "the sample holds the results of a stage (prepare_series.csv, "
+                          "prepare_series.h5, prepared.h5, shear_series.csv, "
+                          "shear_series.h5)"), err
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
+    from tcd import runner
+    assert "sample_3: its checkpoint.h5 is missing, yet it holds the results of a stage: " \
+           "--resume refuses it" in runner.run_info(run)
+    (run / "sample_3").rename(tmp_path / "kept_sample_3")
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
+    assert "every sample starts from the beginning" in capsys.readouterr().err
+    a, b = (json.loads((d / "sample_3" / "summary.json").read_text()) for d in (out, run))
+    assert a["tau_peak_MPa"] == b["tau_peak_MPa"] and a["stages"].keys() == b["stages"].keys()
+
+
+def test_a_batch_resume_refuses_a_damaged_batch_checkpoint(micro_run, tmp_path, capsys):
+    """A damaged batch_checkpoint.h5 is refused as a sample's checkpoint is: one line naming
+    it (it was a traceback from h5py), nothing written."""
+    import shutil
+    scenario_file, out = micro_run
+    scenario = tmp_path / "shear.toml"
+    scenario.write_text(_shear_only((out / "sample_{seed}" / "prepared.h5").as_posix()))
+    run = tmp_path / "batched"
+    run.mkdir()
+    shutil.copy(out / "sample_3" / "checkpoint.h5", run / "batch_checkpoint.h5")
+    _damage(run / "batch_checkpoint.h5")
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(run), "--batch", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: {run / 'batch_checkpoint.h5'}: ") and "damaged" in err
+    assert "start the batch again in a new --out directory" in err and err.count("\n") == 1, err
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
