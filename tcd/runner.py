@@ -763,7 +763,7 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
     if resume and ck_path.exists():     # the files it goes on from, whole
         for path in [ck_path] + [out / f"sample_{seed}" / "states.h5" for seed in seeds]:
             if path.is_file():
-                check_whole(path, f"start the batch again in a new --out directory")
+                check_whole(path, "start the batch again in a new --out directory")
     if resume and not ck_path.exists():
         if not _stopped_before_first_checkpoint(out):
             raise FileNotFoundError(f"{out}: nothing to resume (no batch_checkpoint.h5)")
