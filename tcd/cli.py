@@ -843,6 +843,8 @@ def main(argv=None) -> int:
             from . import io
             io.created_time()
         if args.command == "run":           # its own handlers: a stop at the end of a step
+            from .signals import guard_report_streams
+            guard_report_streams()          # a reader gone (`| head`, a closed terminal): it runs on
             return args.handler(args)
         from .signals import TermAsInterrupt
         with TermAsInterrupt():

@@ -905,6 +905,7 @@ def _watch_parent(parent: int) -> None:
     It used to wait for its next sample for ever, holding its memory (session 47's audit: both
     workers of a killed `--jobs 2` run still asleep minutes after their samples were done)."""
     worker_signals.enter_worker()       # a Ctrl-C or SIGTERM between samples: none starts after
+    worker_signals.guard_report_streams()       # its terminal closed: its samples go on
     def watch():
         while os.getppid() == parent:
             time.sleep(0.5)
@@ -939,14 +940,14 @@ def _run_sample_job(text, source, arch, precision, seed, sample_dir, resume, pro
 
 
 class DeferredInterrupt(SignalScope):
-    """Ctrl-C (SIGINT) or SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
-    job) during a run takes effect at the end of the current step: the step loop writes a
+    """Ctrl-C (SIGINT), SIGTERM (`kill PID`, or a batch scheduler's notice before it ends a
+    job) or SIGHUP (the terminal or SSH session closed) during a run takes effect at the end of the current step: the step loop writes a
     checkpoint there and raises KeyboardInterrupt, so an interrupted run always resumes from
     where it was stopped (not from the last periodic checkpoint, or from nothing when none was
     written yet). A second signal stops at once. Installed as SignalScope says. In a `--jobs`
     worker the stop holds for the worker's later samples too (worker_signals), and one that
     came before the sample began stops it at its first step."""
-    signals = (signal.SIGINT, signal.SIGTERM)
+    signals = worker_signals.STOP_SIGNALS
 
     def __init__(self):
         self.pending = False
@@ -966,12 +967,12 @@ class DeferredInterrupt(SignalScope):
 
 
 class ForwardTerm(SignalScope):
-    """While samples run in worker processes (`--jobs N`), a SIGTERM to the parent is passed on
-    to the workers, each of which checkpoints at the end of its step and stops (their
+    """While samples run in worker processes (`--jobs N`), a SIGTERM or SIGHUP to the parent
+    is passed on to the workers (as SIGTERM), each of which checkpoints at the end of its step and stops (their
     KeyboardInterrupt comes back through the futures), instead of killing the parent and
     leaving the workers running on their own. (Ctrl-C in a terminal reaches every process of
     the job already.) Installed as SignalScope says."""
-    signals = (signal.SIGTERM,)
+    signals = worker_signals.END_SIGNALS
 
     def __init__(self, pool):
         self.pool = pool

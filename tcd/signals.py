@@ -2,12 +2,24 @@
 interrupt of a run, and the other commands' SIGTERM taken as Ctrl-C)."""
 from __future__ import annotations
 
+import errno
+import os
 import signal
+import sys
 import threading
+
+#: the signals that stop a run at the end of its step, and that a `--jobs` worker notes:
+#: Ctrl-C, `kill`, and the hang-up of the terminal it runs in (SIGHUP: a closed terminal or
+#: SSH session; where the platform has it). SIGHUP used to end a run at once, losing up to
+#: checkpoint_every_s of work (session 70's probe).
+STOP_SIGNALS = tuple(s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
+                     if s is not None)
+#: the same, less Ctrl-C: what other commands take as Ctrl-C (TermAsInterrupt)
+END_SIGNALS = STOP_SIGNALS[1:]
 
 #: a `tcd run --jobs` worker process (`enter_worker`): it stops taking samples once told to stop
 in_worker = False
-#: set in a worker only (note_stop, runner.DeferredInterrupt): a SIGINT or SIGTERM has come
+#: set in a worker only (note_stop, runner.DeferredInterrupt): a STOP_SIGNALS signal has come
 #: (during a sample or between two): the samples still queued for it do not start (a stopped
 #: run left them to its resume)
 stop_requested = False
@@ -28,7 +40,7 @@ def enter_worker() -> None:
     global in_worker
     in_worker = True
     if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in STOP_SIGNALS:
             if signal.getsignal(signum) == _default(signum):
                 signal.signal(signum, note_stop)
 
@@ -63,11 +75,73 @@ class SignalScope:
 
 
 class TermAsInterrupt(SignalScope):
-    """SIGTERM (`kill PID`, `timeout`, a batch scheduler) raises KeyboardInterrupt, as Ctrl-C
-    does, so that a command other than `tcd run` (export, figures, render, analyse, ...) stops
-    through its `finally` blocks: the file it was writing is removed (io.atomic_path) instead of
-    being left as a temporary beside its outputs. Installed as SignalScope says."""
-    signals = (signal.SIGTERM,)
+    """SIGTERM (`kill PID`, `timeout`, a batch scheduler) or SIGHUP (its terminal closed)
+    raises KeyboardInterrupt, as Ctrl-C does, so that a command other than `tcd run` (export,
+    figures, render, analyse, ...) stops through its `finally` blocks: the file it was writing
+    is removed (io.atomic_path) instead of being left as a temporary beside its outputs.
+    Installed as SignalScope says."""
+    signals = END_SIGNALS
 
     def _handler(self, signum, frame):
         raise KeyboardInterrupt
+
+
+#: what a report stream's write fails with once its reader is gone: the pipe's reader ended
+#: (`tcd run ... | head -1`), the terminal was closed (EIO once a closed terminal's process
+#: lives on: SIGHUP ignored, as under `nohup` without its redirection)
+GONE = (errno.EPIPE, errno.EIO)
+
+
+class ReportStream:
+    """sys.stdout or sys.stderr of a `tcd run` (and of its `--jobs` workers): a write or flush
+    that fails because the reader is gone (GONE) points the stream's file descriptor at
+    os.devnull, drops the text and lets the run go on: a run's products are its files, its
+    report on the terminal is not. A run that met a gone reader used to stop: at Taichi's
+    banner with status 0, having run nothing (`| head -1`), or, its terminal closed, at its
+    next progress line, or at its last line with status 74 (session 70's probe). `lost` is
+    the first such error (None while the reader is there). Other errors (a full disk under a
+    redirection) are raised as before."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.lost = None
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except OSError as exc:
+            self._lose(exc)
+            return len(text)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except OSError as exc:
+            self._lose(exc)
+
+    def _lose(self, exc: OSError) -> None:
+        if exc.errno not in GONE:
+            raise exc
+        if self.lost is None:
+            self.lost = exc
+            try:
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, self._stream.fileno())
+                os.close(devnull)
+            except (OSError, ValueError):           # no descriptor: write into nothing
+                self._stream = open(os.devnull, "w", encoding="utf-8")
+        try:
+            self._stream.flush()            # what it held goes to os.devnull now
+        except OSError:
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def guard_report_streams() -> None:
+    """Wrap sys.stdout and sys.stderr in ReportStream (once)."""
+    for name in ("stdout", "stderr"):
+        stream = getattr(sys, name)
+        if stream is not None and not isinstance(stream, ReportStream):
+            setattr(sys, name, ReportStream(stream))

@@ -402,10 +402,12 @@ def test_shear_from_the_saved_sample_equals_the_study_in_one_run(micro_run, tmp_
     assert "inputs" not in a                  # prepared in the same run: no input file
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=["SIGINT", "SIGTERM", "SIGHUP"])
 def test_ctrl_c_checkpoints_at_the_step_it_stopped_and_resumes_to_the_same_end(micro_run, tmp_path,
                                                                                 monkeypatch, signum):
-    """Ctrl-C (SIGINT), or SIGTERM (`kill`, a batch scheduler ending a job), takes effect at
+    """Ctrl-C (SIGINT), SIGTERM (`kill`, a batch scheduler ending a job) or SIGHUP (the
+    terminal closed; it used to end the run at once: session 70's probe) takes effect at
     the end of the step: a checkpoint of that step is written (here no periodic one would have
     been), the run raises KeyboardInterrupt, and --resume ends with the same numbers as the
     uninterrupted run."""
@@ -1760,3 +1762,82 @@ def test_a_batch_resume_refuses_a_damaged_batch_checkpoint(micro_run, tmp_path, 
     assert err.startswith(f"tcd: error: {run / 'batch_checkpoint.h5'}: ") and "damaged" in err
     assert "start the batch again in a new --out directory" in err and err.count("\n") == 1, err
     assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
+
+
+def _tcd_run_command(scenario, out) -> list:
+    return [sys.executable, "-m", "tcd.cli", "run", str(scenario), "--out", str(out),
+            "--arch", backend.arch(), "--precision", backend.precision()]
+
+
+def _same_end(a: pathlib.Path, b: pathlib.Path) -> None:
+    one = io.read_series(a / "sample_3" / "shear_series.h5")
+    two = io.read_series(b / "sample_3" / "shear_series.h5")
+    for key in ("displacement", "shear_stress", "bonds_intact"):
+        assert np.array_equal(one[key], two[key]), key
+
+
+def test_a_run_whose_reader_goes_away_runs_to_its_end(micro_run, tmp_path):
+    """`tcd run ... | head -1`: the run stopped at Taichi's banner (a BrokenPipeError) with
+    status 0, having run nothing (session 70's probe). Its report's reader gone, it now runs
+    on, and ends with its status and its files."""
+    scenario, out = micro_run
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(_tcd_run_command(scenario, run), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL)
+    assert proc.stdout.readline()           # the first line, as `head -1` reads it
+    proc.stdout.close()
+    assert proc.wait(timeout=300) == 0
+    assert (run / "summary.json").is_file()
+    _same_end(out, run)
+
+
+@pytest.mark.parametrize("hangup", ["ignored", "default"])
+def test_a_run_whose_terminal_closes_stops_at_a_checkpoint_or_runs_on(micro_run, tmp_path,
+                                                                      hangup):
+    """A run in a terminal (here a pseudo-terminal it controls) that is closed: SIGHUP ended it
+    at once, losing the work since its last checkpoint; with SIGHUP ignored (the terminal
+    gone, the process alive) a progress line or its last line failed with EIO, status 74
+    (session 70's probe). Now SIGHUP stops it at the end of its step with a checkpoint
+    (status 130), and its --resume ends as the uninterrupted run; with SIGHUP ignored it runs
+    to its end, status 0."""
+    import fcntl
+    import pty
+    import termios
+    scenario, out = micro_run
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    master, slave = pty.openpty()
+
+    def controlled():       # the pseudo-terminal is the run's controlling terminal
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+        if hangup == "ignored":
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    proc = subprocess.Popen(_tcd_run_command(scenario, run), env=env, stdin=slave,
+                            stdout=slave, stderr=slave, start_new_session=True,
+                            preexec_fn=controlled)
+    os.close(slave)
+    ck = run / "sample_3" / "checkpoint.h5"
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None:
+            with contextlib.suppress(OSError):      # keep the terminal's buffer from filling
+                import select
+                while select.select([master], [], [], 0)[0] and os.read(master, 65536):
+                    pass
+            if ck.exists():
+                with contextlib.suppress(Exception):
+                    if io.checkpoint_meta(ck)[0]["phase_index"] >= 1:
+                        break
+            time.sleep(0.1)
+        assert proc.poll() is None, "the run ended before its terminal could be closed"
+    finally:
+        os.close(master)                    # the terminal closes
+    if hangup == "ignored":
+        assert proc.wait(timeout=300) == 0
+        assert (run / "summary.json").is_file()
+    else:
+        assert proc.wait(timeout=300) == 130
+        assert not (run / "summary.json").exists()
+        assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
+    _same_end(out, run)
