@@ -25,6 +25,63 @@ class BackendUnavailable(RuntimeError):
 
 
 OFFLINE_CACHE_BYTES = 1 << 30     # Taichi's compiled-kernel cache limit (see init)
+CACHE_PATH_ENV = "TI_OFFLINE_CACHE_FILE_PATH"    # Taichi's own: where it caches kernels
+
+
+def taichi_cache_path() -> str:
+    """The folder Taichi 1.7 caches compiled kernels in, as Taichi finds it: a non-empty
+    TI_OFFLINE_CACHE_FILE_PATH, else $XDG_CACHE_HOME/taichi/ticache where XDG_CACHE_HOME is
+    set (empty too: /taichi/ticache), else ~/.cache/taichi/ticache."""
+    given = os.environ.get(CACHE_PATH_ENV, "")
+    if given:
+        return given
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    if xdg is not None:
+        return xdg.rstrip("/") + "/taichi/ticache"
+    return os.path.join(os.path.expanduser("~"), ".cache", "taichi", "ticache")
+
+
+def _cannot_write(folder: str) -> str | None:
+    """Why this process cannot write files in `folder` (made if need be); None when it can."""
+    import tempfile
+    try:
+        os.makedirs(folder, mode=0o700, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".tcd-probe-")
+        os.close(fd)
+        os.unlink(probe)
+        return None
+    except OSError as exc:
+        return exc.strerror or str(exc)
+
+
+def ensure_kernel_cache() -> None:
+    """Make sure Taichi can write its kernel cache before ti.init: where it cannot (a HOME
+    that is not a folder, a read-only one, TI_OFFLINE_CACHE_FILE_PATH under a file), Taichi
+    1.7.4 ran the whole job and then died of a segmentation fault at exit, status 139
+    (session 70's probe), offline cache on or off. Such a folder is replaced, with a note, by
+    one of this user's own under the system's temporary folder (TI_OFFLINE_CACHE_FILE_PATH
+    set to it, so that a `--jobs` worker uses it too); when that cannot be written either,
+    ValueError says so before anything runs."""
+    import tempfile
+    wanted = taichi_cache_path()
+    why = _cannot_write(wanted)
+    if why is None:
+        return
+    uid = getattr(os, "getuid", lambda: "user")()
+    fallback = os.path.join(tempfile.gettempdir(), f"tcd-taichi-cache-{uid}")
+    other = _cannot_write(fallback)
+    if other is None and hasattr(os, "getuid"):
+        info = os.lstat(fallback)       # a folder of this user's own, not a link to another's
+        if os.path.islink(fallback) or info.st_uid != os.getuid():
+            other = "it is not a folder of this user's own"
+    if other is not None:
+        raise ValueError(f"Taichi's kernel cache {wanted} cannot be written ({why}), nor "
+                         f"{fallback} ({other}): set {CACHE_PATH_ENV} to a folder that can")
+    import sys
+    print(f"tcd: note: Taichi's kernel cache {wanted} cannot be written ({why}): it caches "
+          f"compiled kernels in {fallback} instead (set {CACHE_PATH_ENV} to choose)",
+          file=sys.stderr)
+    os.environ[CACHE_PATH_ENV] = fallback
 
 
 def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
@@ -96,6 +153,7 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
         extra["offline_cache_max_size_of_files"] = OFFLINE_CACHE_BYTES
     if os.environ.get("TCD_KERNEL_PROFILER", "") not in ("", "0"):
         extra["kernel_profiler"] = True     # benchmarks/profile.py: time per kernel
+    ensure_kernel_cache()
     ti.init(arch=ti_arch, default_fp=fp, default_ip=ti.i32, debug=debug,
             offline_cache=True, log_level=ti.WARN, fast_math=fast_math, **extra)
     memoise_frontend()

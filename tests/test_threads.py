@@ -135,6 +135,7 @@ def test_open_skip_setting_is_checked():
 
 def run_init(env_extra, call="tcd.init('cpu', 'f64')"):
     env = env_without_thread_settings(**env_extra, PYTHONPATH=str(ROOT))
+    env = {k: v for k, v in env.items() if v is not None}       # None: unset
     code = f"import tcd\nfrom tcd import backend\n{call}\nprint(backend.serial_loops())"
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=300, env=env)
@@ -178,3 +179,46 @@ def test_fast_math_setting_is_read_checked_and_recorded():
     assert out.returncode != 0 and "TCD_FAST_MATH must be 0 or 1" in out.stderr
     out = run_init({}, "tcd.init('cpu', 'f64', fast_math=1)")
     assert out.returncode != 0 and "fast_math must be True or False" in out.stderr
+
+
+SCAN = ("import numpy as np, taichi as ti\nfrom tcd import contacts\n"
+        "count, start = ti.field(ti.i32, shape=8), ti.field(ti.i32, shape=9)\n"
+        "count.from_numpy(np.arange(8, dtype=np.int32))\n"
+        "print('total', contacts.exclusive_scan(count, start, 8))")
+
+
+def test_a_kernel_cache_that_cannot_be_written_is_replaced_not_a_crash_at_exit(tmp_path):
+    """A HOME Taichi cannot write its kernel cache under (here a file; a read-only home, a
+    TI_OFFLINE_CACHE_FILE_PATH under a file alike) let a run do all its work and then die of a
+    segmentation fault at exit, status 139 (session 70's probe). Now the cache goes to a
+    folder of the user's own under the temporary folder, with a note that says so."""
+    blocked = tmp_path / "a_file"
+    blocked.write_text("not a folder")
+    (tmp_path / "tmp").mkdir()
+    fallback = tmp_path / "tmp" / f"tcd-taichi-cache-{os.getuid()}"
+    for env in ({"HOME": str(blocked / "home")},
+                {"TI_OFFLINE_CACHE_FILE_PATH": str(blocked / "cache")}):
+        env = dict(env, TMPDIR=str(tmp_path / "tmp"), XDG_CACHE_HOME=None)
+        out = run_init(env, f"tcd.init('cpu', 'f64')\n{SCAN}")
+        assert out.returncode == 0, (env, out.returncode, out.stderr[-800:])
+        assert "total 28" in out.stdout, out.stdout
+        assert (f"tcd: note: Taichi's kernel cache {blocked}/" in out.stderr
+                and "cannot be written (Not a directory): it caches compiled kernels in "
+                f"{fallback} instead" in out.stderr), out.stderr[-800:]
+        assert any(fallback.iterdir())          # kernels cached there
+
+
+def test_tcd_knows_where_taichi_caches_its_kernels(tmp_path):
+    """backend.taichi_cache_path, which ensure_kernel_cache checks, is the folder Taichi itself
+    chose: TI_OFFLINE_CACHE_FILE_PATH, else $XDG_CACHE_HOME/taichi/ticache, else
+    ~/.cache/taichi/ticache."""
+    call = ("tcd.init('cpu', 'f64')\nimport taichi as ti\n"
+            "print('paths', ti.lang.impl.current_cfg().offline_cache_file_path, "
+            "backend.taichi_cache_path())")
+    for env in ({"XDG_CACHE_HOME": None}, {"XDG_CACHE_HOME": str(tmp_path / "xdg")},
+                {"TI_OFFLINE_CACHE_FILE_PATH": str(tmp_path / "given")}):
+        out = run_init(env, call)
+        line = [t for t in out.stdout.splitlines() if t.startswith("paths ")]
+        assert out.returncode == 0 and line, out.stderr[-500:]
+        taichi_path, ours = line[0].split()[1:]
+        assert os.path.abspath(taichi_path) == os.path.abspath(ours), env
