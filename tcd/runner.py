@@ -319,6 +319,10 @@ def scenario_changes(text: str, scenario, where: str) -> list:
 LOCK_FILE = ".tcd.lock"
 
 
+
+class RunLocked(ValueError):
+    """Another process holds the run directory's lock (run_lock)."""
+
 @contextlib.contextmanager
 def run_lock(out: pathlib.Path):
     """Hold `out`/.tcd.lock (an exclusive `flock`, created with `out` if need be) while a run
@@ -346,7 +350,7 @@ def run_lock(out: pathlib.Path):
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "a process that did not say which"
-            raise ValueError(f"{out}: another tcd run is writing into this directory ({holder}); "
+            raise RunLocked(f"{out}: another tcd run is writing into this directory ({holder}); "
                              "wait for it to end, or stop it (Ctrl-C or SIGTERM: it writes its "
                              "checkpoint) before --resume, or choose another --out "
                              "directory") from None
@@ -374,15 +378,26 @@ def recorded_run(scenario, out: pathlib.Path, resume: bool):
     if resume:
         record_scenario(scenario, out, resume)
     before = None if resume else _paths_in(out)       # None too when `out` is new
+    locked = False
     try:
         with run_lock(out):
-            if not resume:
-                record_scenario(scenario, out, resume)
-            else:       # what writes killed hard left (each sample's folder: _run_sample)
-                _note_removed(io.remove_stale_temporaries(out))
-            yield
+            locked = True
+            try:
+                if not resume:
+                    record_scenario(scenario, out, resume)
+                else:       # what writes killed hard left (each sample's folder: _run_sample)
+                    _note_removed(io.remove_stale_temporaries(out))
+                yield
+            except Exception:
+                if not resume:      # under the lock: no other run writes into `out` now
+                    _take_back_records(out, before)
+                raise
+    except RunLocked:
+        # another run holds `out`: what was added since `before` is that run's (its records,
+        # made since this one looked), not this one's; they were taken back (session 70)
+        raise
     except Exception:
-        if not resume:
+        if not resume and not locked:       # the lock could not be made: `out` as it was
             _take_back_records(out, before)
         raise
 

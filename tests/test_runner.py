@@ -1841,3 +1841,32 @@ def test_a_run_whose_terminal_closes_stops_at_a_checkpoint_or_runs_on(micro_run,
         assert not (run / "summary.json").exists()
         assert run_tcd(["run", str(scenario), "--out", str(run), "--resume"]) == 0
     _same_end(out, run)
+
+
+def test_a_run_refused_by_another_runs_lock_leaves_that_runs_records(micro_run, tmp_path,
+                                                                     capsys, monkeypatch):
+    """A new run looks at its --out directory, finds it missing, and is then refused because
+    another run created it meanwhile and holds its lock: its clean-up took everything it had
+    not seen for its own records and removed the other run's scenario.toml, run.json and lock
+    file (session 70's probe; a race of two runs started at once). Now only a run that held
+    the lock takes anything back."""
+    import shutil
+    from tcd import runner
+    from tcd.runner import LOCK_FILE
+    scenario, out = micro_run
+    race = tmp_path / "race"
+    race.mkdir()
+    for name in ("scenario.toml", "run.json"):
+        shutil.copy(out / name, race / name)
+    real = runner._paths_in
+    looks = []
+
+    def looked_before_the_other_run_began(path):
+        looks.append(path)
+        return None if len(looks) == 1 else real(path)
+    monkeypatch.setattr(runner, "_paths_in", looked_before_the_other_run_began)
+    with lock_held_elsewhere(race / LOCK_FILE, "pid 4343 on the other terminal"):
+        assert run_tcd(["run", str(scenario), "--out", str(race)]) == 2
+        assert "another tcd run is writing into this directory" in capsys.readouterr().err
+        assert sorted(p.name for p in race.iterdir()) == [LOCK_FILE, "run.json", "scenario.toml"]
+    assert looks == [race]
