@@ -140,7 +140,10 @@ class ReportStream:
 
 
 def guard_report_streams() -> None:
-    """Wrap sys.stdout and sys.stderr in ReportStream (once)."""
+    """Wrap sys.stdout and sys.stderr in ReportStream (once). Taichi, imported after, would
+    take a sys.stdout other than sys.__stdout__ for a notebook's and print after every kernel
+    launch (its "Graphical python shell detected" buffer): TI_ENABLE_PYBUF=0 unless set."""
+    os.environ.setdefault("TI_ENABLE_PYBUF", "0")
     for name in ("stdout", "stderr"):
         stream = getattr(sys, name)
         if stream is not None and not isinstance(stream, ReportStream):
