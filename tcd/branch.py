@@ -101,7 +101,7 @@ def plan_branch(scenario, source, out) -> dict:
     """Check that `scenario` can go on from run `source` into `out` and work out, per seed,
     the checkpoint it starts from; nothing is written. Returns {seed: (arrays, meta, files)}."""
     from .config import ScenarioError, parse_scenario
-    from .runner import SAMPLE_CHECKPOINT_KEYS, _scenario_record
+    from .runner import RESUMED_FILES, SAMPLE_CHECKPOINT_KEYS, _scenario_record
     source, out = pathlib.Path(source), pathlib.Path(out)
     if not source.is_dir():
         raise BranchError(f"--from {source}: not a run directory")
@@ -130,6 +130,16 @@ def plan_branch(scenario, source, out) -> dict:
         if not ck.is_file():
             raise BranchError(f"--from {source}: no checkpoint of seed {seed} ({ck}): the run "
                               "has no such sample, or it stopped before its first checkpoint")
+        # every file of the sample it goes on from, whole (a damaged checkpoint was a
+        # traceback; a damaged states.h5 or prepared.h5 was copied, then refused as the new
+        # run's own: session 71)
+        for path in sorted({p for pattern in RESUMED_FILES for p in sample.glob(pattern)}):
+            if path.is_file():
+                try:
+                    io.check_readable(path)
+                except ValueError as exc:
+                    raise BranchError(f"--from {source}: {exc}: a run cannot go on from it; "
+                                      "restore it from a copy") from None
         arrays, meta = io.load_checkpoint(ck)
         missing = [k for k in SAMPLE_CHECKPOINT_KEYS + ("scenario_text",) if k not in meta]
         if missing:

@@ -216,3 +216,29 @@ def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, t
     assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "z")]) != 0
     assert "No space left on device" in capsys.readouterr().err
     assert not (tmp_path / "z").exists() and _digests(cut) == before
+
+
+@pytest.mark.parametrize("name", ["checkpoint.h5", "states.h5"])
+def test_a_branch_from_a_damaged_file_is_refused_naming_it(shear, tmp_path, monkeypatch, capsys,
+                                                           name):
+    """--from a run whose checkpoint was damaged stopped with a traceback (RuntimeError from
+    h5py); from one whose states.h5 was damaged, the branch copied it and the new run then
+    refused its own copy, leaving that folder behind (session 71). Now the source's files are
+    read whole first: one line naming the damaged file, nothing written."""
+    import shutil
+    from test_runner import _damage
+    scenario, _ = shear
+    cut = tmp_path / "cut"
+    _interrupted(scenario, cut, monkeypatch)
+    source = tmp_path / "damaged"
+    shutil.copytree(cut, source)
+    _damage(source / "sample_3" / name)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--from", str(source), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tcd: error: --from {source}: {source / 'sample_3' / name}: "), err
+    assert "damaged: a run cannot go on from it" in err and err.count("\n") == 1, err
+    assert not out.exists()
+    # the undamaged one goes on
+    assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "ok")]) == 0
