@@ -876,7 +876,11 @@ def load_checkpoint(path) -> tuple[dict, dict]:
     with _open_tcd(path, FILE_CHECKPOINT) as f:
         if "arrays" not in f or "meta" not in f.attrs:
             raise ValueError(f"{path}: checkpoint without 'arrays' group or 'meta' attribute")
-        arrays = _datasets(f["arrays"])
+        try:
+            arrays = _datasets(f["arrays"])
+        except (RuntimeError, KeyError) as exc:     # h5py's word for a damaged structure
+            raise ValueError(f"{path}: cannot read ({type(exc).__name__}: {exc}); the file "
+                             "is damaged") from None
         meta = _meta_of(f, path)
     return arrays, meta
 

@@ -1422,6 +1422,9 @@ def read_prepared(path) -> tuple[dict, dict]:
     from .simulation import MAX_WALLS, STATE_KEYS, check_state_arrays
     from .walls import Wall
     p = pathlib.Path(path)
+    # the whole file first: a damaged one is a ValueError naming it (h5py's RuntimeError
+    # was a traceback, the checksum's OSError an I/O error: session 71)
+    io.check_readable(p)
     arrays, meta = io.load_checkpoint(p)
     if not isinstance(meta, dict):
         raise ValueError(f"{p}: its 'meta' attribute is not a JSON object")

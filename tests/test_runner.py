@@ -1876,3 +1876,25 @@ def test_a_run_refused_by_another_runs_lock_leaves_that_runs_records(micro_run, 
         assert "another tcd run is writing into this directory" in capsys.readouterr().err
         assert sorted(p.name for p in race.iterdir()) == [LOCK_FILE, "run.json", "scenario.toml"]
     assert looks == [race]
+
+
+def test_a_shear_from_a_damaged_prepared_sample_is_refused_in_one_line(micro_run, tmp_path,
+                                                                       capsys):
+    """A shear scenario whose `sample` file is damaged stopped `tcd run` (with --batch too)
+    and `tcd info SCENARIO` with a traceback (h5py's RuntimeError; session 71's probe)."""
+    import shutil
+    _, out = micro_run
+    shutil.copy(out / "sample_3" / "prepared.h5", tmp_path / "s_3.h5")
+    _damage(tmp_path / "s_3.h5")
+    scenario = tmp_path / "shear.toml"
+    scenario.write_text(_shear_only((tmp_path / "s_{seed}.h5").as_posix()))
+    from tcd.cli import main
+    capsys.readouterr()
+    for argv in (["run", str(scenario), "--out", str(tmp_path / "run")],
+                 ["run", str(scenario), "--out", str(tmp_path / "batch"), "--batch"],
+                 ["info", str(scenario)]):
+        assert (run_tcd(argv) if argv[0] == "run" else main(argv)) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"tcd: error: {tmp_path / 's_3.h5'}: ") and "damaged" in err, err
+        assert err.count("\n") == 1, err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "batch").exists()
