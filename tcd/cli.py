@@ -819,8 +819,15 @@ def _io_error(exc: OSError, args) -> int:
     """The file system refused (read-only, full, a name too long, a file where a folder must
     be): one line naming the path; every output is written atomically, so what was there
     before is intact."""
-    hint = ("; the files written before are intact: once this is fixed, run it again "
-            "(with --resume if it had written a checkpoint)" if args.command == "run" else "")
+    if args.command != "run":
+        hint = ""
+    elif getattr(exc, "tcd_records_taken_back", False):
+        # nothing of the run was left (its sample folders gone, moved or deleted while it ran):
+        # its records were taken back, so there is nothing to resume
+        hint = "; nothing of this run is left to resume: once this is fixed, run it again"
+    else:
+        hint = ("; the files written before are intact: once this is fixed, run it again "
+                "(with --resume if it had written a checkpoint)")
     print(f"tcd: error: {_os_message(exc)}{hint}", file=sys.stderr)
     return EXIT_IO
 

@@ -388,17 +388,17 @@ def recorded_run(scenario, out: pathlib.Path, resume: bool):
                 else:       # what writes killed hard left (each sample's folder: _run_sample)
                     _note_removed(io.remove_stale_temporaries(out))
                 yield
-            except Exception:
+            except Exception as exc:
                 if not resume:      # under the lock: no other run writes into `out` now
-                    _take_back_records(out, before)
+                    _mark_taken_back(exc, _take_back_records(out, before))
                 raise
     except RunLocked:
         # another run holds `out`: what was added since `before` is that run's (its records,
         # made since this one looked), not this one's; they were taken back (session 70)
         raise
-    except Exception:
+    except Exception as exc:
         if not resume and not locked:       # the lock could not be made: `out` as it was
-            _take_back_records(out, before)
+            _mark_taken_back(exc, _take_back_records(out, before))
         raise
 
 
@@ -412,25 +412,37 @@ def _paths_in(out: pathlib.Path) -> set | None:
     return set(out.rglob("*")) if out.exists() else None
 
 
-def _take_back_records(out: pathlib.Path, before: set | None) -> None:
+def _mark_taken_back(exc: BaseException, taken_back: bool) -> None:
+    """Tell the command's error report (`cli._io_error`) that the failed run's records were
+    taken back: nothing of it is left to resume."""
+    if taken_back:
+        try:
+            exc.tcd_records_taken_back = True
+        except AttributeError:      # an exception class without a __dict__
+            pass
+
+
+def _take_back_records(out: pathlib.Path, before: set | None) -> bool:
     """After a new run failed: when what it added to `out` (the paths not in `before`, None
     when `out` did not exist) is nothing but its records, locks and empty folders (no sample
-    wrote anything), remove them, and `out` itself if the run created it, so that the refusal
-    leaves the directory as it was. A run that wrote anything else keeps it all."""
+    wrote anything, or what it wrote was removed by someone else), remove them, and `out`
+    itself if the run created it, so that the refusal leaves the directory as it was. A run
+    that wrote anything else keeps it all. True when it removed something."""
     if not out.is_dir():            # the failure was to make it
-        return
+        return False
     try:
         added = sorted(_paths_in(out) - (before or set()), key=lambda q: len(q.parts),
                        reverse=True)
         if any(not q.is_dir() and q.name != LOCK_FILE
                and (q.parent != out or q.name not in RECORD_FILES) for q in added):
-            return
+            return False
         for q in added:
             q.rmdir() if q.is_dir() else q.unlink()
         if before is None:
             out.rmdir()
+        return bool(added) or before is None
     except OSError:         # another process writes there now: leave it all
-        pass
+        return False
 
 
 def _note_removed(paths) -> None:

@@ -1878,6 +1878,32 @@ def test_a_run_refused_by_another_runs_lock_leaves_that_runs_records(micro_run, 
     assert looks == [race]
 
 
+def test_a_run_whose_sample_folder_is_deleted_under_it_does_not_promise_its_files(
+        micro_run, tmp_path, capsys, monkeypatch):
+    """A user deleted a new run's sample folder while it ran: the run stopped at its next
+    write (exit 74), took its records back (nothing of it was left) and removed its --out
+    directory, yet said "the files written before are intact ... --resume" (session 71's
+    probe). Now it says that nothing is left to resume."""
+    import shutil
+    from tcd import io
+    _, out = micro_run
+    scenario = tmp_path / "shear.toml"
+    scenario.write_text(_shear_only((out / "sample_{seed}" / "prepared.h5").as_posix()))
+    real = io.append_frame
+
+    def deleted_by_the_user(path, *args, **kwargs):
+        shutil.rmtree(pathlib.Path(path).parent)
+        return real(path, *args, **kwargs)
+    monkeypatch.setattr(io, "append_frame", deleted_by_the_user)
+    run = tmp_path / "run"
+    capsys.readouterr()
+    assert run_tcd(["run", str(scenario), "--out", str(run)]) == 74
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("tcd: error: ") and "No such file or directory" in err, err
+    assert "nothing of this run is left to resume" in err and "intact" not in err, err
+    assert not run.exists()
+
+
 def test_a_shear_from_a_damaged_prepared_sample_is_refused_in_one_line(micro_run, tmp_path,
                                                                        capsys):
     """A shear scenario whose `sample` file is damaged stopped `tcd run` (with --batch too)
