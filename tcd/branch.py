@@ -10,7 +10,8 @@ What may differ between RUN's scenario and NEW's (anything else is refused, nami
     name, description and seeds (each seed of NEW must be one of RUN's samples),
     [solver] and [output] (every key; under another `time_step` what is left of the step
     budget of the phase under way is rescaled, so that the phase ends at the same simulated
-    time; the steps it took stay counted as taken),
+    time; the steps it took stay counted as taken; the warm start's impulses, forces times
+    the time step, are rescaled with it, so that the first step starts from the same forces),
     the stage under way: its `tolerance`, `max_sweeps` and `smoothing_window_mm`, and a shear
     stage's `displacement_mm` (not below where the test stands; a finished run whose last
     stage is a shear is reopened when it is larger),
@@ -36,6 +37,8 @@ import pathlib
 import re
 import shutil
 
+import numpy as np
+
 from . import io
 from .protocols import Phase
 from .runner import LOCK_FILE, shared_lock
@@ -43,6 +46,9 @@ from .runner import LOCK_FILE, shared_lock
 #: what may change in the stage under way, by its kind
 STAGE_UNDER_WAY = {"shear": ("tolerance", "max_sweeps", "smoothing_window_mm", "displacement_mm"),
                    "prepare": ()}
+#: a checkpoint's arrays that are impulses over one step (N s: forces times the time step),
+#: rescaled when the new run steps at another time step
+IMPULSE_KEYS = tuple(key for key, unit in io.STATE_UNITS.items() if unit == "N s")
 _STAGE_KEY = re.compile(r"^stage\[(\d+)\]\.([A-Za-z_]+)")
 
 
@@ -215,6 +221,14 @@ def plan_branch(scenario, source, out) -> dict:
             # how far the ring had moved (mm): where the curves of the two runs part
             record["displacement_mm"] = ((t - float(phase.info["t0"]))
                                          * old.stages[stage_idx].velocity_mm_per_min / 60.0)
+        if h_new != h_old:
+            # a step's impulses are its forces times H: the warm start of the first step at
+            # the new H is the same forces (as the old impulses, it started the solver 2x
+            # off for H / 2 and broke bonds: session 72's review)
+            arrays = dict(arrays)
+            for key in IMPULSE_KEYS:
+                if key in arrays:
+                    arrays[key] = np.asarray(arrays[key]) * (h_new / h_old)
         new_meta = dict(meta)
         new_meta.update({"scenario_text": scenario.text, "stage": stage_idx,
                          "phase_index": phase_idx, "step_in_phase": sip,

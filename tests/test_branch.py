@@ -139,6 +139,21 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
     other = "f32" if backend.precision() == "f64" else "f64"
     started = json.loads((cut / "run.json").read_text())
     (cut / "run.json").write_text(json.dumps({**started, "precision": other}))
+    # the warm start of the first step at H / 2 is the same forces: the impulses (forces
+    # times H) halved; they were kept, and on a shear near its peak (tiny.toml at 0.4 mm)
+    # that step then ran to the sweep cap and broke 21 bonds, against 7 halved and none at
+    # the same H (session 72's review)
+    from tcd.branch import IMPULSE_KEYS, branch_run
+    branch_run(load_here(finer), cut, tmp_path / "planned")
+    was = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")[0]
+    now = io.load_checkpoint(tmp_path / "planned" / "sample_3" / "checkpoint.h5")[0]
+    assert {"contacts/impulse", "bonds/impulse", "bonds/impulse_prev"} <= set(IMPULSE_KEYS)
+    for key in set(was) | set(now):
+        if key in IMPULSE_KEYS:
+            assert np.any(was[key] != 0.0), key
+            assert np.allclose(now[key], 0.5 * was[key], rtol=1e-12, atol=0.0), key
+        elif not key.startswith("series/"):
+            assert np.array_equal(now[key], was[key], equal_nan=was[key].dtype.kind == "f"), key
     assert run_tcd(["run", str(finer), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
     cut_series, got = io.load_checkpoint(cut / "sample_3" / "checkpoint.h5")[0], _series(tmp_path / "new")
     for key in got:                 # the source's steps, then the new ones
