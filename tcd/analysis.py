@@ -203,28 +203,37 @@ def analyse(path, out_prefix, *, frames="all", time_step: float | None = None) -
                          "is not an output of tcd analyse (a run's series?); choose another "
                          "prefix, or remove it")
     states, h = load_states(path, frames)
-    if time_step is not None:
-        if h is not None and not math.isclose(float(time_step), h, rel_tol=1e-12):
-            raise ValueError(f"--time-step {time_step:g}: {path} records its own time step, "
-                             f"{h:g} s, with which its impulses were computed; leave "
-                             "--time-step out")
-        h = float(time_step)
     if not states:
         raise ValueError(f"{path}: no frames to analyse")
+    # each frame's own time step where the file records it (a run that went on from another
+    # at another step holds frames of both)
+    own = sorted({frame["time_step"] for frame in states if "time_step" in frame})
+    if time_step is not None:
+        if own and not all(math.isclose(float(time_step), x, rel_tol=1e-12) for x in own):
+            shown = " and ".join(f"{x:g}" for x in own)
+            raise ValueError(f"--time-step {time_step:g}: {path} records its own time step, "
+                             f"{shown} s, with which its impulses were computed; leave "
+                             "--time-step out")
+        for frame in states:
+            frame.setdefault("time_step", float(time_step))
+        h = float(time_step)
     from .export import refuse_batch
     for state in states:
         refuse_batch(state, path, "tcd analyse")
-    if h is None:
-        print(f"tcd analyse: {path} does not give the time step (a prepared sample or a "
-              "checkpoint): normal forces and stresses are left out; pass --time-step H to "
-              "have them", file=sys.stderr)
-    rows = [frame_row(frame, h) for frame in states]
+    if not own and time_step is None:
+        print(f"tcd analyse: {path} does not give the time step (it records no scenario): "
+              "normal forces and stresses are left out; pass --time-step H to have them",
+              file=sys.stderr)
+    steps = [frame.get("time_step") for frame in states]
+    rows = [frame_row(frame, frame.get("time_step")) for frame in states]
     series = {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
     series["frame"] = np.asarray([frame["index"] for frame in states], np.int64)
     keys = ["frame"] + list(rows[0])
     series = {k: series[k] for k in keys}
     io.write_series(h5, series, units=UNITS, csv_path=csv,
                     attrs={"analysis": "tcd analyse", "source": os.fspath(path),
-                           "time_step": h if h is not None else "unknown",
+                           "time_step": (h if h is not None else "unknown")
+                           if len(set(steps)) == 1 else
+                           [x if x is not None else float("nan") for x in steps],
                            "stages": [str(frame["stage"]) for frame in states]})
     return [h5, csv]

@@ -40,6 +40,7 @@ import shutil
 import numpy as np
 
 from . import io
+from .export import TIME_STEPS_ATTR, frame_time_steps
 from .protocols import Phase
 from .runner import LOCK_FILE, shared_lock
 
@@ -312,6 +313,27 @@ def _write_branch(scenario, source: pathlib.Path, out: pathlib.Path, plans: dict
         if states.is_file():        # its scenario: the one its frames go on under
             with io.atomic_path(states) as tmp:
                 with io.hdf5_writer(tmp, source=states, size=states.stat().st_size) as f:
+                    segments = _time_steps_after(f, meta, scenario.solver.time_step)
                     f.attrs["scenario"] = scenario.text
                     f.attrs["branched_from"] = str(source.resolve())
+                    if segments is not None:
+                        f.attrs[TIME_STEPS_ATTR] = json.dumps(segments)
         io.save_checkpoint(dst / "checkpoint.h5", arrays, meta)
+
+
+def _time_steps_after(f, meta: dict, h_new: float) -> list | None:
+    """The `time_steps` record (export.TIME_STEPS_ATTR) of the open states file `f` once the
+    new run's frames, from the checkpoint's (`meta["frames"]`) on, are stepped at `h_new`: the
+    time step of each earlier frame as it was, then `h_new`; None when every frame is and
+    will be at one time step (the scenario's then tells it)."""
+    count = len(io._frame_names(f, f.filename))
+    kept = meta.get("frames")
+    kept = count if not isinstance(kept, int) else min(int(kept), count)
+    steps = frame_time_steps(f, kept)
+    segments = []
+    for k, h in enumerate(steps + [float(h_new)]):
+        if h is None:
+            return None         # a frame of unknown time step: nothing to record
+        if not segments or segments[-1][1] != h:
+            segments.append([k, h])
+    return segments if len(segments) > 1 or TIME_STEPS_ATTR in f.attrs else None

@@ -42,6 +42,7 @@ quantities named above.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
@@ -78,6 +79,34 @@ def _time_step(scenario_text: str) -> float | None:
     return float(SolverConfig.model_fields["time_step"].default)
 
 
+#: a states file's attribute that records the time step of its frames where a branch (`tcd run
+#: --from`) changed it: JSON [[first frame, H], ...], each H from its frame on
+TIME_STEPS_ATTR = "time_steps"
+
+
+def frame_time_steps(f, count: int) -> list:
+    """H of each of the `count` frames of the open states file `f` (None where unknown): the
+    `time_steps` a branch recorded, else its scenario's one time step for every frame."""
+    text = f.attrs.get("scenario", "")
+    text = text.decode() if isinstance(text, bytes) else str(text)
+    steps = [_time_step(text)] * count
+    raw = f.attrs.get(TIME_STEPS_ATTR)
+    if raw is None:
+        return steps
+    try:
+        segments = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        segments = sorted((int(k), float(h)) for k, h in segments)
+    except (ValueError, TypeError):
+        raise ValueError(f"{f.filename}: its {TIME_STEPS_ATTR} attribute is not readable "
+                         "(expected [[first frame, time step], ...])") from None
+    if any(not (h > 0 and math.isfinite(h)) or k < 0 for k, h in segments):
+        raise ValueError(f"{f.filename}: its {TIME_STEPS_ATTR} attribute holds a time step that "
+                         "is not a positive number, or a negative frame")
+    for k, h in segments:
+        steps[k:] = [h] * max(count - k, 0)
+    return steps
+
+
 def refuse_batch(state: dict, path, command: str) -> None:
     """ValueError when `state` (load_states) holds several samples batched side by side in one
     simulation (a `tcd run --batch` checkpoint: particles/system): drawn or reduced as one,
@@ -92,8 +121,10 @@ def refuse_batch(state: dict, path, command: str) -> None:
 
 
 def load_states(path, frames="all") -> tuple[list[dict], float | None]:
-    """The frames to export (flat dicts as io.read_frame gives them) and the time step H (None if
-    unknown). A checkpoint or prepared sample gives its single state as frame 0."""
+    """The frames to export (flat dicts as io.read_frame gives them) and the time step H their
+    impulses were computed with (None if unknown, or if the frames' differ: each frame where
+    known holds its own as "time_step"). A checkpoint or prepared sample gives its single state
+    as frame 0."""
     path = os.fspath(path)
     kind = _kind(path)
     if kind == io.FILE_STATES:
@@ -112,8 +143,10 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
                     indices.append(kk)
         import h5py
         with h5py.File(path, "r") as f:
-            text = f.attrs.get("scenario", "")
-            text = text.decode() if isinstance(text, bytes) else str(text)
+            # each frame's own: a run that went on from another at another time step
+            # (`tcd run --from`) holds frames of both (session 72's review: the earlier frames'
+            # forces came out scaled by H_old / H_new)
+            steps = frame_time_steps(f, count)
         out, diverged = [], []
         for k in indices:
             frame = io.read_frame(path, k)
@@ -122,12 +155,14 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
             if not np.all(np.isfinite(frame["particles/x"])):
                 diverged.append(k)
             frame["index"] = k
+            if steps[k] is not None:
+                frame["time_step"] = steps[k]
             out.append(frame)
         if diverged:
             shown = ", ".join(map(str, diverged[:5])) + (" ..." if len(diverged) > 5 else "")
             print(f"tcd: warning: {path}: {len(diverged)} frame(s) hold positions that are not "
                   f"finite (a run that diverged?): {shown}", file=sys.stderr)
-        return out, _time_step(text)
+        return out, _common_time_step(out)
     if kind == io.FILE_CHECKPOINT:
         if not (isinstance(frames, str) and frames == "all") and list(frames) not in ([0], [-1]):
             raise ValueError(f"{path}: a checkpoint holds one state (frame 0), got frames {frames}")
@@ -151,9 +186,22 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
                          stage=str(meta.get("stage", "")), index=0)
         except (AttributeError, TypeError, ValueError):
             raise ValueError(f"{path}: its meta's time, step or stage is not readable") from None
-        return [frame], None
+        # a run's checkpoint or prepared sample keeps its scenario, and with it the step its
+        # impulses were computed with (session 72: it was taken as unknown)
+        text = meta.get("scenario_text")
+        h = _time_step(text) if isinstance(text, str) else None
+        if h is not None:
+            frame["time_step"] = h
+        return [frame], h
     raise ValueError(f"{path}: a tcd {kind} file holds no particle states (expected a states "
                      f"file, a prepared sample or a checkpoint)")
+
+
+def _common_time_step(frames: list) -> float | None:
+    """The time step of every frame in `frames` when they share one (None when one is unknown
+    or they differ: each frame's own is its "time_step")."""
+    steps = {frame.get("time_step") for frame in frames}
+    return steps.pop() if len(steps) == 1 else None
 
 
 # --- meshes ----------------------------------------------------------------------------------
@@ -323,7 +371,8 @@ def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = Non
     written, collections = [], {p: [] for p in parts}
     # every mesh is made before the first file is written: a frame that lacks what a part
     # needs (a damaged file) stops the export with nothing written, not half of it
-    meshes = [(frame, part, _mesh(frame, part, h)) for frame in states for part in parts]
+    meshes = [(frame, part, _mesh(frame, part, frame.get("time_step", h)))
+              for frame in states for part in parts]
     out_dir.mkdir(parents=True, exist_ok=True)
     for frame, part, mesh in meshes:
         name = f"{stem}_{part}_{frame['index']:06d}.vtu"

@@ -1,6 +1,7 @@
 """`tcd analyse`: contact network, fabric and Love-Weber grain stress of snapshots, checked on
 configurations whose forces are known in closed form."""
 import csv
+import json
 import math
 import pathlib
 
@@ -215,6 +216,51 @@ def test_a_time_step_that_contradicts_the_file_is_refused(tmp_path):
     with pytest.raises(ValueError, match="records its own time step"):
         analysis.analyse(path, tmp_path / "a", time_step=2 * H)
     analysis.analyse(path, tmp_path / "b", time_step=H)
+
+
+def test_a_checkpoint_gives_the_time_step_of_its_scenario(tmp_path, capsys):
+    """A run's checkpoint (or prepared sample) keeps its scenario, and with it the time step its
+    impulses were computed with: it was taken as unknown, so `tcd analyse` left the stresses
+    out and took any --time-step, giving every stress scaled by the wrong step (session 72's
+    review). Now it gives the same stresses as a states file of that scenario."""
+    f, _ = column()
+    states, ck = tmp_path / "states.h5", tmp_path / "checkpoint.h5"
+    io.append_frame(states, f, time=0.1, step=5, stage="prepare", scenario_text=SCENARIO)
+    io.save_checkpoint(ck, f, {"time": 0.1, "step": 5, "scenario_text": SCENARIO})
+    assert analysis.load_states(ck)[1] == H
+    a = io.read_series(analysis.analyse(states, tmp_path / "a")[0])
+    b = io.read_series(analysis.analyse(ck, tmp_path / "b")[0])
+    assert b["stress_zz"][0] < 0 and b["stress_zz"][0] == a["stress_zz"][0]
+    with pytest.raises(ValueError, match="records its own time step"):
+        analysis.analyse(ck, tmp_path / "c", time_step=2 * H)
+    # with no scenario in its meta the step is unknown, and --time-step gives it
+    io.save_checkpoint(ck, f, {"time": 0.1})
+    assert "stress_zz" not in io.read_series(analysis.analyse(ck, tmp_path / "d")[0])
+    assert "does not give the time step" in capsys.readouterr().err
+    d = io.read_series(analysis.analyse(ck, tmp_path / "e", time_step=H)[0])
+    assert d["stress_zz"][0] == a["stress_zz"][0]
+
+
+def test_the_frames_of_a_branched_states_file_use_each_its_own_time_step(tmp_path):
+    """`tcd run --from` at another time step records, in the states file, the step of the
+    frames from the branch on (`time_steps`); the frames before keep theirs."""
+    import h5py
+    f, _ = column()
+    path = tmp_path / "states.h5"
+    for k in range(3):
+        io.append_frame(path, f, time=0.1 * k, step=k, stage="prepare", scenario_text=SCENARIO)
+    with h5py.File(path, "a") as g:
+        g.attrs["time_steps"] = json.dumps([[0, H], [2, H / 2]])
+    states, h = analysis.load_states(path)
+    assert h is None and [s["time_step"] for s in states] == [H, H, H / 2]
+    rows = io.read_series(analysis.analyse(path, tmp_path / "a")[0])["stress_zz"]
+    assert rows[2] == pytest.approx(2 * rows[0], rel=1e-12) and rows[0] == rows[1] < 0
+    with pytest.raises(ValueError, match="0.0001 and 0.0002 s"):
+        analysis.analyse(path, tmp_path / "b", time_step=H)
+    with h5py.File(path, "a") as g:
+        g.attrs["time_steps"] = "[[0, -1]]"
+    with pytest.raises(ValueError, match="time_steps attribute"):
+        analysis.load_states(path)
 
 
 # --- session 43's mutation audit of the files and checks that guard the results -------------

@@ -177,6 +177,42 @@ def test_another_time_step_and_tolerance_end_the_shear_where_it_was_to_end(shear
         f"stage[1].sample: {sample!r} -> {rel!r}"]
 
 
+def test_the_frames_a_branch_inherits_keep_their_time_step(shear, tmp_path, monkeypatch):
+    """A branch at another time step: the frames RUN wrote keep theirs, so `tcd analyse` and
+    `tcd export` read their forces as RUN's (they were scaled by H_old / H_new: session 72's
+    review), and the new frames' at the new step."""
+    from tcd import analysis, export
+    scenario, _ = shear
+    often = tmp_path / "often.toml"
+    often.write_text(scenario.read_text().replace("snapshot_every = 0.05", "snapshot_every = 0.002"))
+    cut = tmp_path / "cut"
+    _interrupted(often, cut, monkeypatch)
+    finer = tmp_path / "finer.toml"
+    finer.write_text(often.read_text().replace("time_step = 5e-4", "time_step = 2.5e-4"))
+    assert run_tcd(["run", str(finer), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
+    frames = io.frame_count(cut / "sample_3" / "states.h5")
+    old = io.read_series(analysis.analyse(cut / "sample_3" / "states.h5", tmp_path / "a")[0])
+    new = io.read_series(analysis.analyse(tmp_path / "new" / "sample_3" / "states.h5",
+                                          tmp_path / "b")[0])
+    assert frames >= 3 and len(new["frame"]) > frames
+    for key in ("stress_zz", "normal_force_max"):
+        assert np.any(old[key] != 0), key
+        assert np.array_equal(new[key][:frames], old[key]), key
+    states, h = export.load_states(tmp_path / "new" / "sample_3" / "states.h5")
+    assert h is None
+    assert [s["time_step"] for s in states] == [5e-4] * frames + [2.5e-4] * (len(states) - frames)
+    # a branch of the branch, back at the first step, keeps the record of each frame
+    import h5py
+    from tcd.branch import _time_steps_after
+    with h5py.File(tmp_path / "new" / "sample_3" / "states.h5", "r") as f:
+        n = len(states)
+        assert _time_steps_after(f, {"frames": n - 1}, 5e-4) == [
+            [0, 5e-4], [frames, 2.5e-4], [n - 1, 5e-4]]
+        assert _time_steps_after(f, {"frames": n}, 2.5e-4) == [[0, 5e-4], [frames, 2.5e-4]]
+    with h5py.File(cut / "sample_3" / "states.h5", "r") as f:
+        assert _time_steps_after(f, {"frames": frames}, 5e-4) is None
+
+
 def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, tmp_path,
                                                                         monkeypatch, capsys):
     scenario, whole = shear
