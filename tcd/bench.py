@@ -487,5 +487,5 @@ def _write_scaling(rows: list, out: str, arch: str, precision: str, schedule: st
     ax.legend()
     fig.tight_layout()
     with io.atomic_path(png_path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
+        io.save_figure(fig, tmp, "png", dpi=120)
     plt.close(fig)

@@ -569,7 +569,7 @@ def _new_figure(width: float, height: float) -> Figure:
 def _save(fig: Figure, path: Path, written: list) -> None:
     with io.atomic_path(path) as tmp:
         fmt = path.suffix.lstrip(".")
-        fig.savefig(tmp, format=fmt, dpi=fig.dpi, metadata=io.figure_metadata(fmt))
+        io.save_figure(fig, tmp, fmt, dpi=fig.dpi)
     written.append(path)
 
 

@@ -893,6 +893,20 @@ def _meta_of(f: h5py.File, path: str):
         raise ValueError(f"{path}: its 'meta' attribute is not valid JSON ({exc})") from None
 
 
+def save_figure(fig, path, fmt: str, **kwargs) -> None:
+    """Write the matplotlib figure `fig` to `path` (a temporary of atomic_path) as `fmt`:
+    drawn in memory first, then written in one write of Python's own, so that a full disk is
+    a plain OSError naming `path`. (Matplotlib's PDF writer, failing half way on a full disk,
+    raised AttributeError in its clean-up, which hid the OSError: `tcd figures` and `tcd
+    compare` ended in a traceback, session 72's review.) Date-free metadata as
+    figure_metadata."""
+    import io as _bytes_io
+    buf = _bytes_io.BytesIO()
+    fig.savefig(buf, format=fmt, metadata=figure_metadata(fmt), **kwargs)
+    with open(path, "wb") as fh:
+        fh.write(buf.getbuffer())
+
+
 def figure_metadata(fmt: str) -> dict | None:
     """Matplotlib `savefig` metadata that leaves out the date it would write into a PDF, PS
     or SVG, so that the same figure is the same bytes (`tcd figures` twice; PNG has none)."""

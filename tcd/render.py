@@ -1485,7 +1485,7 @@ def figure_velocity(path, out, frames, *, panel_width=900, velocity: str = "mean
                      fontsize=9)
     with atomic_output(out) as tmp:
         fmt = Path(out).suffix.lstrip(".") or "png"
-        fig.savefig(tmp, format=fmt, metadata=io.figure_metadata(fmt))
+        io.save_figure(fig, tmp, fmt)
 
 
 # ----------------------------------------------------------------------------------------------

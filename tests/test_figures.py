@@ -1,6 +1,8 @@
 """tcd.figures: smoothing, peak detection, Table 2 and the headless outputs of a run directory."""
 import json
 import math
+import os
+import sys
 import types
 
 import imageio.v3 as iio
@@ -586,3 +588,43 @@ def test_curves_still_rising_at_their_end_are_named_under_table2_in_fig4_and_in_
     assert ("Curves still rising at their end (the peak within half a smoothing window of the "
             "last point: no failure seen, the peak a lower bound), by run (seeds): a (12, 14).") \
         in text, text
+
+
+_FULL_DISK = r'''
+import io, resource, signal, sys, pathlib
+import numpy as np
+from tcd import figures
+fig = figures._new_figure(7.2, 4.3)
+fig.add_subplot().plot(np.random.default_rng(1).normal(size=20000))
+buf = io.BytesIO()
+fig.savefig(buf, format="pdf")
+size = len(buf.getvalue())
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+out = pathlib.Path(sys.argv[1])
+for fraction in (0.05, 0.3, 0.6, 0.8, 0.95):
+    resource.setrlimit(resource.RLIMIT_FSIZE, (int(fraction * size), resource.RLIM_INFINITY))
+    try:
+        figures._save(fig, out, [])
+        print(fraction, "written")
+    except BaseException as exc:
+        print(fraction, type(exc).__name__, getattr(exc, "filename", None))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+'''
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="file size limits are POSIX")
+def test_a_figure_that_the_disk_cannot_hold_fails_as_an_os_error_naming_it(tmp_path):
+    """A disk that filled while `tcd figures` or `tcd compare` wrote a PDF ended in a traceback
+    (matplotlib's PDF writer failed half way and its clean-up raised zlib.error or
+    AttributeError, hiding the OSError; session 72's review on a 150 KB tmpfs). Each figure
+    is now drawn in memory and written in one write: a plain OSError naming the figure, and
+    nothing left. Here the file size limit cuts the PDF at 5-95 % of its length."""
+    import subprocess
+    out = tmp_path / "fig.pdf"
+    proc = subprocess.run([sys.executable, "-c", _FULL_DISK, str(out)], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    lines = proc.stdout.split("\n")[:-1]
+    assert proc.returncode == 0 and len(lines) == 5, proc.stdout + proc.stderr
+    for line in lines:
+        assert line.split(" ", 1)[1] == f"OSError {out}", lines
+    assert list(tmp_path.iterdir()) == []
