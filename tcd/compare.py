@@ -18,6 +18,7 @@ import io as _stdio
 import math
 import os
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -199,6 +200,10 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
                      **run_numbers(samples)})
     for r, scenario in zip(runs, figures.scenarios_of([r["dir"] for r in runs])):
         r["scenario"] = scenario
+        if scenario is None:
+            warnings.warn(f"{Path(r['dir']) / 'scenario.toml'} missing or unreadable, and no "
+                          "sample of the run records its scenario: its settings are shown as "
+                          "'?' and not compared", figures.FigureWarning, stacklevel=2)
     keys = differing_settings([r["scenario"] for r in runs])
     for r in runs:
         flat = flat_keys(r["scenario"]) if r["scenario"] is not None else {}
@@ -232,8 +237,12 @@ def calibrate(runs: list[dict], keys: list[str], target: float, setting: str | N
     if not (isinstance(target, (int, float)) and math.isfinite(target) and target > 0):
         raise ValueError(f"--target-peak {target}: expected a positive stress in MPa")
 
-    flats = {r["label"]: flat_keys(r["scenario"]) if r["scenario"] is not None else {}
-             for r in runs}
+    unknown = [f"{r['label']} ({r['dir']})" for r in runs if r["scenario"] is None]
+    if unknown:
+        raise ValueError(f"--target-peak: the scenario of {', '.join(unknown)} is not known "
+                         "(its scenario.toml missing or unreadable, and no sample records it): "
+                         "its settings cannot be fitted; restore its scenario.toml")
+    flats = {r["label"]: flat_keys(r["scenario"]) for r in runs}
 
     def number(r, key):
         value = flats[r["label"]].get(key)
@@ -334,7 +343,11 @@ def table_markdown(runs: list[dict], keys: list[str], seeds=None) -> str:
             + (" (stopped before the end)" if so_far else ""),
             f"{100 * share:.1f} %" if math.isfinite(share) else "–",
             os.fspath(r["dir"])]) + " |")
-    if not keys:
+    unknown = [r["label"] for r in runs if r.get("scenario", {}) is None]
+    if unknown:
+        lines += ["", f"The scenario of {', '.join(unknown)} is not known (its scenario.toml "
+                      "missing or unreadable): its settings are not compared."]
+    elif not keys:
         lines += ["", "The runs' scenarios do not differ (seeds, names and outputs aside)."]
     if seeds is not None:
         taken = "; ".join(f"{r['label']} ({', '.join(str(s.seed) for s in r['samples'])})"

@@ -395,8 +395,14 @@ def _scenario_of(run_dir: Path) -> dict | None:
     path = run_dir / "scenario.toml"
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        return None
+        tomllib.loads(text)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        # its samples keep the scenario they ran (states.h5, checkpoint.h5): `tcd compare`
+        # said two runs' scenarios did not differ when one's scenario.toml was gone
+        # (session 72's review)
+        text = _recorded_scenario_text(run_dir)
+        if text is None:
+            return None
     try:
         data = parse_scenario(text, str(path), resolve_samples=False).model_dump(
             mode="json", by_alias=True, exclude={"text", "source"})
@@ -416,6 +422,26 @@ def _scenario_base(run_dir: Path) -> Path | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return Path(source).parent if isinstance(source, str) and source else None
+
+
+def _recorded_scenario_text(run_dir: Path) -> str | None:
+    """The scenario text a sample of `run_dir` recorded (its states.h5, else its checkpoint;
+    None where none is readable)."""
+    for sample in sorted(run_dir.glob("sample_*")):
+        for name in ("states.h5", "checkpoint.h5"):
+            try:
+                if name == "states.h5":
+                    import h5py
+                    with h5py.File(sample / name, "r") as f:
+                        text = f.attrs.get("scenario", "")
+                else:
+                    text = io.checkpoint_meta(sample / name)[0].get("scenario_text", "")
+            except (OSError, ValueError, KeyError, RuntimeError, AttributeError):
+                continue
+            text = text.decode() if isinstance(text, bytes) else text
+            if isinstance(text, str) and text.strip():
+                return text
+    return None
 
 
 def scenarios_of(run_dirs) -> list[dict | None]:

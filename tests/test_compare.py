@@ -394,3 +394,34 @@ def test_target_peak_refuses_what_it_cannot_fit(tmp_path, capsys):
     assert "**" not in printed and "1.6 (the peak at" in printed
     assert ("Caveats: the runs' means are over different samples (`--seeds` takes the same ones); "
             "the runs also differ in stage[1].wall_friction, which the fit ignores.") in printed
+
+
+def test_a_run_without_its_scenario_file_is_read_from_its_samples_or_named(tmp_path, capsys):
+    """A run whose scenario.toml was missing or unreadable was left out of the settings, and
+    compare.md said "The runs' scenarios do not differ", --target-peak that they differed in no
+    setting (session 72's review). Now its samples' recorded scenario stands in for it, and
+    where none is left the run is named: a warning, a line in compare.md, a refused fit."""
+    from tcd import io
+    a = _run(tmp_path, "a", [(1, 0.8e6, 2.0e-3)], friction=0.3)
+    b = _run(tmp_path, "b", [(1, 0.9e6, 2.1e-3)], friction=0.5)
+    text = (b / "scenario.toml").read_text()
+    (b / "scenario.toml").unlink()
+    io.append_frame(b / "sample_1" / "states.h5", {
+        "particles/x": np.zeros((1, 3)), "particles/radius": np.full(1, 1e-3)},
+        time=0.0, step=0, stage="shear", scenario_text=text)
+    out = tmp_path / "o"
+    assert main(["compare", str(a), str(b), "--out", str(out)]) == 0
+    md = (out / "compare.md").read_text()
+    assert "stage[1].wall_friction" in md and "do not differ" not in md
+    (b / "sample_1" / "states.h5").unlink()
+    (b / "scenario.toml").write_text("not = [toml")
+    capsys.readouterr()
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "p")]) == 0
+    err = capsys.readouterr().err
+    assert f"{b / 'scenario.toml'} missing or unreadable" in err, err
+    md = (tmp_path / "p" / "compare.md").read_text()
+    assert "The scenario of b is not known" in md and "do not differ" not in md
+    assert main(["compare", str(a), str(b), "--target-peak", "0.85", "--out",
+                 str(tmp_path / "q")]) == 2
+    assert "the scenario of b (" in capsys.readouterr().err
+    assert not (tmp_path / "q").exists()
