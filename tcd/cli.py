@@ -296,7 +296,8 @@ def cmd_export(args) -> int:
     parts = list(dict.fromkeys(q.strip() for q in args.parts.split(",") if q.strip()))
     from .export import export
     with _reading(path):
-        written = export(path, args.out, frames="all" if frames is None else frames, parts=parts)
+        written = export(path, args.out, frames="all" if frames is None else frames, parts=parts,
+                         prefix=args.prefix)
     pvd = [str(w) for w in written if w.suffix == ".pvd"]
     print(f"wrote {len(written) - len(pvd)} VTK files into {args.out}; open in ParaView: "
           + ", ".join(pvd))
@@ -674,6 +675,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "negative indices count from the end)")
     p.add_argument("--parts", default="particles,contacts,bonds,walls", metavar="P,P,...",
                    help="any of particles, contacts, bonds, walls (default all four)")
+    p.add_argument("--prefix", metavar="NAME", help="start of the file names (default the "
+                   "file's name, e.g. states: states_particles_000000.vtu); exports of several "
+                   "samples' states.h5 into one folder each need their own")
     p.set_defaults(handler=cmd_export)
 
     p = sub.add_parser("analyse", help="contact network, fabric and mean grain stress of every "

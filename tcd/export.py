@@ -45,6 +45,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import sys
 import tomllib
 from pathlib import Path
@@ -344,12 +345,35 @@ def _one_per_time(entries) -> list:
     return kept
 
 
-def _pvd(entries) -> str:
+#: the comment of a .pvd that names the file it was exported from (a JSON string: its "--"
+#: written as "-\u002d", which an XML comment cannot hold)
+_SOURCE_COMMENT = re.compile(r'<!-- tcd export source: ("(?:[^"\\]|\\.)*") -->')
+
+
+def _pvd(entries, source: str | None = None) -> str:
     rows = "\n".join(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(name)}/>'
                      for t, name in _one_per_time(entries))
-    return ('<?xml version="1.0"?>\n'
-            '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
+    mark = ("" if source is None else "<!-- tcd export source: "
+            + json.dumps(source).replace("--", "-\\u002d") + " -->\n")
+    return ('<?xml version="1.0"?>\n' + mark
+            + '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
             f'  <Collection>\n{rows}\n  </Collection>\n</VTKFile>\n')
+
+
+def exported_from(pvd) -> str | None:
+    """The file the .pvd at `pvd` was exported from (None: not said, or not readable)."""
+    try:
+        with open(pvd, encoding="utf-8") as fh:
+            head = fh.read(8192)
+    except (OSError, UnicodeDecodeError):
+        return None
+    found = _SOURCE_COMMENT.search(head)
+    if not found:
+        return None
+    try:
+        return json.loads(found.group(1))
+    except ValueError:
+        return None
 
 
 def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = None) -> list[Path]:
@@ -367,7 +391,25 @@ def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = Non
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"{out_dir}: exists and is not a directory")
+    if prefix is not None and (not prefix or prefix != Path(prefix).name or prefix in (".", "..")):
+        raise ValueError(f"--prefix {prefix!r}: expected a file name prefix (no folder)")
     stem = prefix or Path(path).stem
+    source = os.path.realpath(os.fspath(path))
+    # the targets are checked before anything is written: a folder where a file goes, and
+    # the export of another file of the same name (every sample's is states.h5) that this
+    # one would overwrite frame by frame and mix with its own (session 72's review)
+    names = [f"{stem}_{part}_{frame['index']:06d}.vtu" for frame in states for part in parts]
+    names += [f"{stem}_{part}.pvd" for part in parts]
+    for name in names:
+        if (out_dir / name).is_dir():
+            raise ValueError(f"{out_dir / name}: is a directory, not a file; nothing was "
+                             "written")
+    for part in parts:
+        earlier = exported_from(out_dir / f"{stem}_{part}.pvd")
+        if earlier is not None and earlier != source:
+            raise ValueError(f"{out_dir}: holds an export of {earlier} ({stem}_{part}.pvd), "
+                             f"which this export of {path} would overwrite and mix with its "
+                             "own frames; export into another folder, or give --prefix NAME")
     written, collections = [], {p: [] for p in parts}
     # every mesh is made before the first file is written: a frame that lacks what a part
     # needs (a damaged file) stops the export with nothing written, not half of it
@@ -385,6 +427,6 @@ def export(path, out_dir, *, frames="all", parts=PARTS, prefix: str | None = Non
     for part, entries in collections.items():
         target = out_dir / f"{stem}_{part}.pvd"
         with io.atomic_path(target) as tmp:
-            Path(tmp).write_text(_pvd(entries))
+            Path(tmp).write_text(_pvd(entries, source), encoding="utf-8")
         written.append(target)
     return written

@@ -284,6 +284,40 @@ def test_cli_export(states, tmp_path, capsys):
     assert "none.h5: no such file" in capsys.readouterr().err
 
 
+def test_an_export_of_another_file_of_the_same_name_is_refused_not_mixed(states, tmp_path,
+                                                                          capsys):
+    """Every sample's snapshots are a states.h5: exporting a second sample into the folder of
+    the first replaced the first's frames one by one and mixed the rest under one name, with
+    no word (session 72's review). Now each .pvd names its source, another source is refused
+    before anything is written, and --prefix names an export; a folder where a file goes is
+    refused before the first file too (all .vtu files and three .pvd files were written)."""
+    other = tmp_path / "other" / "states.h5"
+    other.parent.mkdir()
+    io.append_frame(other, frame(0.002), time=0.5, step=10, stage="prepare",
+                    scenario_text=SCENARIO)
+    out = tmp_path / "vtk"
+    export.export(states, out)
+    assert export.exported_from(out / "states_particles.pvd") == str(states.resolve())
+    ET.parse(out / "states_particles.pvd")                  # still plain VTK XML
+    before = {q.name: q.read_bytes() for q in out.iterdir()}
+    assert cli.main(["export", str(other), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"holds an export of {states.resolve()}" in err and "--prefix" in err, err
+    assert {q.name: q.read_bytes() for q in out.iterdir()} == before
+    export.export(states, out, frames=[0])                  # the same file again: its own
+    assert cli.main(["export", str(other), "--out", str(out), "--prefix", "other"]) == 0
+    assert export.exported_from(out / "other_walls.pvd") == str(other.resolve())
+    m = meshio.read(out / "other_particles_000000.vtu")
+    assert np.allclose(m.points, frame(0.002)["particles/x"])
+    assert cli.main(["export", str(other), "--out", str(out), "--prefix", "a/b"]) == 2
+    assert "--prefix 'a/b': expected a file name prefix" in capsys.readouterr().err
+    fresh = tmp_path / "fresh"
+    (fresh / "states_walls.pvd").mkdir(parents=True)
+    assert cli.main(["export", str(states), "--out", str(fresh)]) == 2
+    assert "states_walls.pvd: is a directory" in capsys.readouterr().err
+    assert [q.name for q in fresh.iterdir()] == ["states_walls.pvd"]
+
+
 # --- session 43's mutation audit of the files and checks that guard the results -------------
 # export.py load_states: a checkpoint's contact arrays past its `contacts/start` table's end are
 # unused capacity, not contacts
