@@ -278,14 +278,14 @@ def cmd_render(args) -> int:
         raise UsageError(f"--out {args.out}: directory {folder} {what}")
     import tcd
     tcd.init(args.arch, args.precision)
-    from .render import render_file
+    from .render import WriterMissing, render_file
     with _reading(path):
         try:
             render_file(path, args.out, frame=args.frame, frames=frames, color=args.color,
                         section=args.section, camera=args.camera, width=args.width,
                         height=args.height, fps=args.fps)
-        except RuntimeError as exc:     # e.g. no MP4 writer installed
-            raise UsageError(str(exc)) from None
+        except WriterMissing as exc:    # no MP4 writer installed; h5py's RuntimeError of a
+            raise UsageError(str(exc)) from None        # damaged file: _reading names it
     print(f"wrote {args.out}")
     return 0
 
@@ -659,7 +659,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", choices=CAMERAS, default="iso")
     p.add_argument("--width", type=_image_side, default=1600)
     p.add_argument("--height", type=_image_side, default=1200)
-    p.add_argument("--fps", type=_frame_rate, default=10.0, help="animation frame rate")
+    p.add_argument("--fps", type=_frame_rate, default=10.0,
+                   help="animation frame rate (default 10; at most 50 in a GIF)")
     _backend_options(p, default_arch="cpu", default_precision="f64")
     p.set_defaults(handler=cmd_render)
 

@@ -1251,9 +1251,18 @@ def _frame_list(path, frames):
     return [int(k) for k in frames]
 
 
+#: the highest frame rate a GIF plays as asked: its delays are hundredths of a second, and
+#: browsers and viewers play a delay under 0.02 s as 0.1 s
+MAX_GIF_FPS = 50
+
+
+class WriterMissing(RuntimeError):
+    """The image or animation format asked for needs a package that is not installed."""
+
+
 def _check_animation_writer(out: Path):
     if out.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
-        raise RuntimeError(
+        raise WriterMissing(
             f"cannot write {out}: MP4 output needs the 'imageio-ffmpeg' package, which is not "
             f"installed (pip install imageio-ffmpeg); or write a GIF instead, e.g. "
             f"--out {out.with_suffix('.gif').name}")
@@ -1274,6 +1283,11 @@ def render_file(path, out, *, frame=-1, frames=None, color="layer", section=None
                                  camera=camera, width=width, height=height), out)
         return
     _check_animation_writer(out)
+    if out.suffix.lower() == ".gif" and fps > MAX_GIF_FPS:
+        raise ValueError(f"--fps {fps:g}: a GIF keeps each frame's delay in hundredths of a "
+                         "second, and viewers play delays under 0.02 s at about 10 frames per "
+                         f"second: at most {MAX_GIF_FPS} frames per second in a GIF (an .mp4 "
+                         "takes more)")
     indices = _frame_list(path, "all" if frames is None else frames)
     if not indices:
         raise ValueError(f"{path}: no frames to animate")

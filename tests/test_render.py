@@ -606,3 +606,45 @@ def test_fig3_shows_each_grain_s_mean_velocity_between_two_snapshots(tmp_path, m
     np.testing.assert_allclose(seen[1], [0.0, 1.0], atol=1e-9)
     with pytest.raises(ValueError, match="velocity 'both': expected one of mean, instant"):
         render.figure_velocity(path, tmp_path / "x.png", [1], velocity="both")
+
+
+def test_a_damaged_file_is_named_in_the_one_line_error(states, tmp_path, capsys):
+    """h5py reports some damage as RuntimeError, which `tcd render` took for its own message
+    (a missing MP4 writer) and printed without the file ("tcd: error: Object visitation failed
+    (bad object header version number)"; session 72's review). Now, as `tcd info`, `export`
+    and `analyse`, every refusal names the file: 512 bytes of 0xff at 19 places in turn."""
+    from tcd import cli
+    data = states.read_bytes()
+    damaged = tmp_path / "damaged.h5"
+    refused = []
+    for k in range(1, 20):
+        at = k * len(data) // 20
+        damaged.write_bytes(data[:at] + b"\xff" * 512 + data[at + 512:])
+        capsys.readouterr()
+        rc = cli.main(["render", str(damaged), "--out", str(tmp_path / "x.png"), "--width",
+                       "64", "--height", "48"])
+        err = capsys.readouterr().err
+        assert rc in (0, 2), (k, rc, err)
+        if rc == 2:
+            assert err.startswith(f"tcd: error: {damaged}: ") and err.count("\n") == 1, (k, err)
+            refused.append(err)
+    assert any("RuntimeError" in err for err in refused), refused
+
+
+def test_a_gif_plays_at_the_frame_rate_asked_or_is_refused(states, tmp_path):
+    """A GIF's delays are hundredths of a second: --fps 200 was written as delays of 0 (the
+    first frame's missing), which viewers play at about 10 frames per second, slower than
+    --fps 50 (session 72's review). Up to 50 the delays are 1/fps; above, refused."""
+    from PIL import Image
+    for fps, delay in ((10, 100), (50, 20)):
+        out = tmp_path / f"a{fps}.gif"
+        render.render_file(states, out, frames="all", fps=fps, width=64, height=48)
+        delays = []
+        with Image.open(out) as im:
+            for k in range(im.n_frames):
+                im.seek(k)
+                delays.append(im.info.get("duration"))
+        assert delays == [delay] * 3, (fps, delays)
+    with pytest.raises(ValueError, match="at most 50 frames per second in a GIF"):
+        render.render_file(states, tmp_path / "b.gif", frames="all", fps=200, width=64, height=48)
+    assert not (tmp_path / "b.gif").exists()
