@@ -806,22 +806,26 @@ def write_series(path_h5, series: dict, *, units: dict | None = None, attrs: dic
                 raise ValueError(f"{where}: csv key {key!r} has shape {arrays[key].shape}, "
                                  f"only 1-D series fit a CSV column")
 
-    with atomic_path(path_h5) as tmp:
-        with hdf5_writer(tmp, size=sum(arr.nbytes for arr in arrays.values())) as f:
-            _write_header(f, FILE_SERIES)
-            for name, value in root_attrs.items():
-                f.attrs[name] = value
-            for key, arr in arrays.items():
-                ds = _dataset(f, key, arr)
-                ds.attrs["units"] = str(units.get(key, "1"))
-    if csv_path is not None:
-        with atomic_path(csv_path) as tmp:
-            with open(tmp, "w", newline="", encoding="utf-8") as fh:
+    # the CSV twin is written first and both files replace the old ones only once both are
+    # whole: a disk that filled at the CSV left a new .h5 beside a missing or stale .csv
+    # (session 72's review)
+    with contextlib.ExitStack() as stack:
+        if csv_path is not None:
+            tmp_csv = stack.enter_context(atomic_path(csv_path))
+            with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
                 writer = csv.writer(fh)
                 writer.writerow([f"{k} [{units.get(k, '1')}]" for k in csv_keys])
                 columns = [arrays[k] for k in csv_keys]
                 for row in zip(*columns):
                     writer.writerow([_csv_cell(v) for v in row])
+        with atomic_path(path_h5) as tmp:
+            with hdf5_writer(tmp, size=sum(arr.nbytes for arr in arrays.values())) as f:
+                _write_header(f, FILE_SERIES)
+                for name, value in root_attrs.items():
+                    f.attrs[name] = value
+                for key, arr in arrays.items():
+                    ds = _dataset(f, key, arr)
+                    ds.attrs["units"] = str(units.get(key, "1"))
 
 
 def _attr_value(value):

@@ -788,3 +788,29 @@ def test_a_malformed_source_date_epoch_is_refused_before_a_command_runs(tmp_path
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "soon")
     assert cli.main(["info", str(tmp_path / "none.h5")]) == 2
     assert "SOURCE_DATE_EPOCH='soon': expected whole seconds" in capsys.readouterr().err
+
+
+def test_a_series_and_its_csv_twin_are_replaced_together_or_not_at_all(tmp_path, monkeypatch):
+    """The .h5 was replaced before the .csv was written: a disk that filled at the CSV left
+    the new .h5 beside the old .csv (or none), a pair that disagree (`tcd analyse`, session
+    72's review). Now the CSV is written first and both stay as they were."""
+    import errno
+    h5, csv_path = tmp_path / "a.h5", tmp_path / "a.csv"
+    io.write_series(h5, {"time": np.arange(3.0)}, csv_path=csv_path)
+    before = h5.read_bytes(), csv_path.read_bytes()
+    real = io._csv_cell
+
+    def full(value):
+        if value == 4.0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(value)
+    monkeypatch.setattr(io, "_csv_cell", full)
+    with pytest.raises(OSError) as caught:
+        io.write_series(h5, {"time": np.arange(6.0)}, csv_path=csv_path)
+    assert caught.value.filename == str(csv_path)
+    assert (h5.read_bytes(), csv_path.read_bytes()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "a.h5"]
+    monkeypatch.undo()
+    io.write_series(h5, {"time": np.arange(6.0)}, csv_path=csv_path)
+    assert list(io.read_series(h5)["time"]) == list(range(6))
+    assert csv_path.read_text().count("\n") == 7
