@@ -185,6 +185,7 @@ def compare_runs(run_dirs, out_dir, labels=None, seeds=None, target_peak=None,
     out_dir = Path(out_dir)
     figures.refuse_file(out_dir)
     figures.refuse_outputs(out_dir, COMPARE_FILES)
+    seeds = None if seeds is None else list(dict.fromkeys(seeds))      # 1,1: seed 1
     wanted = None if seeds is None else {str(x) for x in seeds}
     runs = []
     for label, run_dir in zip(labels, run_dirs):

@@ -165,7 +165,8 @@ def load_states(path, frames="all") -> tuple[list[dict], float | None]:
                   f"finite (a run that diverged?): {shown}", file=sys.stderr)
         return out, _common_time_step(out)
     if kind == io.FILE_CHECKPOINT:
-        if not (isinstance(frames, str) and frames == "all") and list(frames) not in ([0], [-1]):
+        if not (isinstance(frames, str) and frames == "all") and (
+                not list(frames) or any(int(k) not in (0, -1) for k in frames)):
             raise ValueError(f"{path}: a checkpoint holds one state (frame 0), got frames {frames}")
         arrays, meta = io.load_checkpoint(path)
         frame = {k: v for k, v in arrays.items() if k.split("/")[0] in io.GROUP_SIZE_SYMBOL}

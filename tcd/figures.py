@@ -341,7 +341,7 @@ def load_run(run_dir, skipped: list | None = None, *,
                 samples.append(load_sample(seed, directory))
         except (OSError, ValueError, KeyError) as exc:
             if skipped is None:
-                warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+                warnings.warn(f"sample {seed} skipped: {_reason(exc)}", FigureWarning, stacklevel=2)
             else:
                 skipped.append((seed, exc))
     if not samples:
@@ -383,6 +383,14 @@ def summary_from_samples(samples: list[SampleCurves]) -> dict:
 #: change no number of a sample (a sample's numbers depend on its seed and the physics only)
 STUDY_FREE_KEYS = ("seeds", "description", "name", "output")
 STUDY_SUMMARY_NAME = "study_summary.json"
+
+
+def _reason(exc: BaseException) -> str:
+    """Why a sample was skipped, in one line: a missing file as `PATH: what is missing` (it
+    was Python's "[Errno 2] no such tcd series file: 'PATH'")."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
 
 
 def _scenario_of(run_dir: Path) -> dict | None:
@@ -559,7 +567,7 @@ def load_runs(run_dirs, skipped: list | None = None) -> tuple[dict | None, list[
             summary, samples = load_run(run_dirs[0], own)
         finally:                         # warned even when no sample is left (ValueError)
             for seed, exc in own:
-                warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+                warnings.warn(f"sample {seed} skipped: {_reason(exc)}", FigureWarning, stacklevel=2)
             if skipped is not None:
                 skipped += own
         return summary, samples
@@ -579,7 +587,7 @@ def load_runs(run_dirs, skipped: list | None = None) -> tuple[dict | None, list[
     have = {str(s.seed) for s in samples}
     for seed, exc in found_skipped:
         if str(seed) not in have:
-            warnings.warn(f"sample {seed} skipped: {exc}", FigureWarning, stacklevel=2)
+            warnings.warn(f"sample {seed} skipped: {_reason(exc)}", FigureWarning, stacklevel=2)
             if skipped is not None:
                 skipped.append((seed, exc))
     return merged, samples

@@ -579,12 +579,12 @@ def run_info(out) -> str:
             text = "not started"
         lines.append(f"sample_{seed}: {text}")
     if (out / "summary.json").is_file():
-        lines.append(f"run summary: {out / 'summary.json'} (`tcd figures {out}` draws the "
+        lines.append(f"run summary: {out / 'summary.json'} (`tcd figures {shlex.quote(str(out))}` draws the "
                      "figures and Table 2)")
     else:
         lines.append("run summary: not written yet (the run has not finished; resume it with "
                      f"`tcd run {shlex.quote(scenario_file) if scenario_file else '<its scenario>'}"
-                     f" --out {out}{' ' + given if given else ''}"
+                     f" --out {shlex.quote(str(out))}{' ' + given if given else ''}"
                      f"{' --batch' if batch.is_file() else ''} --resume`)" if not holder else
                      "run summary: not written yet")
     return "\n".join(lines)

@@ -260,6 +260,11 @@ def test_compare_seeds_takes_the_same_samples_of_each_run(tmp_path, capsys):
     taken = [s.tau_peak * 1e-6 for s in every if s.seed in ("2", "4")]
     assert rows["five"][3] == f"{np.mean(taken):.3f} ± {np.std(taken):.3f}"
     assert "Only the samples of seeds 2, 4 (`--seeds`), by run: five (2, 4); three (2, 4)." in md
+    # a seed given twice is one seed ("seeds 2, 2, 4" before session 72)
+    assert main(["compare", str(five), str(three), "--seeds", "2,2,4", "--out",
+                 str(tmp_path / "twice")]) == 0
+    assert ((tmp_path / "twice" / "compare.md").read_text().split("|")[-1]
+            == md.split("|")[-1].replace(str(out), str(tmp_path / "twice")))
     # none of the seeds in a run: refused, nothing written
     assert main(["compare", str(five), str(three), "--seeds", "5", "--out",
                  str(tmp_path / "none")]) == 2

@@ -203,6 +203,10 @@ def test_a_prepared_sample_or_checkpoint_exports_its_one_state(tmp_path):
     assert [float(d.get("timestep")) for d in root.iter("DataSet")] == [2.5]
     with pytest.raises(ValueError, match="one state"):
         export.export(path, tmp_path / "vtk", frames=[1])
+    # 0 and -1 are both its frame (refused together before session 72; render took them)
+    assert export.load_states(path, [0, -1])[0][0]["index"] == 0
+    with pytest.raises(ValueError, match="one state"):
+        export.export(path, tmp_path / "vtk", frames=[0, 1])
 
 
 def test_bad_requests_are_refused_with_the_problem_named(states, tmp_path, capsys):

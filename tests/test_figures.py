@@ -195,8 +195,11 @@ def test_make_figures_skips_samples_without_series(tmp_path):
     _write_sample(run, 5, 0.85e6, 2.2e-3)
     (run / "sample_6").mkdir()                   # still running: no series yet
     out = tmp_path / "out"
-    with pytest.warns(FigureWarning, match="sample 6 skipped"):
+    with pytest.warns(FigureWarning, match="sample 6 skipped") as caught:
         written = make_figures(run, out)        # no summary.json: table from the series
+    # the file and what is missing, not Python's "[Errno 2] ...: 'PATH'" (before session 72)
+    assert (f"sample 6 skipped: {run / 'sample_6' / 'shear_series.h5'}: no such tcd series "
+            "file") in [str(w.message) for w in caught]
     assert (out / "fig4_stress_displacement.png") in written
     md = (out / "table2.md").read_text()
     assert "0.850" in md and "2.20" in md and "one sample" in md and "±" not in md

@@ -1924,3 +1924,21 @@ def test_a_shear_from_a_damaged_prepared_sample_is_refused_in_one_line(micro_run
         assert err.startswith(f"tcd: error: {tmp_path / 's_3.h5'}: ") and "damaged" in err, err
         assert err.count("\n") == 1, err
     assert not (tmp_path / "run").exists() and not (tmp_path / "batch").exists()
+
+
+def test_the_commands_tcd_info_suggests_are_quoted_for_the_shell(micro_run, tmp_path):
+    """`tcd info RUN` printed `tcd figures t/run α b`, which a shell splits at the spaces
+    (session 72's review); the resume command's --out likewise."""
+    import shlex
+    import shutil
+    from tcd import runner
+    _, out = micro_run
+    run = tmp_path / "run α b"
+    shutil.copytree(out, run)
+    info = runner.run_info(run)
+    assert f"`tcd figures {shlex.quote(str(run))}`" in info, info
+    (run / "summary.json").unlink()
+    info = runner.run_info(run)
+    assert f" --out {shlex.quote(str(run))} --resume`" in info, info
+    command = info.split("resume it with `", 1)[1].split("`", 1)[0]
+    assert shlex.split(command)[shlex.split(command).index("--out") + 1] == str(run)
