@@ -567,7 +567,9 @@ def run_info(out) -> str:
             text = _checkpoint_line(ck, stages, live=bool(holder))
         elif batch.is_file() and d.is_dir():
             text = "in the batch (above)" + _shear_so_far(batch, seed)
-        elif d.is_dir() and any(d.glob(pattern) for pattern in STAGE_RESULTS):
+        elif d.is_dir() and any(any(d.glob(pattern)) for pattern in STAGE_RESULTS):
+            # (any(d.glob(...)): a generator is always true, so every started folder without a
+            # checkpoint was said to be refused: session 72's review)
             text = ("its checkpoint.h5 is missing, yet it holds the results of a stage: "
                     "--resume refuses it (put the checkpoint back, or move the folder away "
                     "to run the sample again)")
@@ -582,9 +584,21 @@ def run_info(out) -> str:
         lines.append(f"run summary: {out / 'summary.json'} (`tcd figures {shlex.quote(str(out))}` draws the "
                      "figures and Table 2)")
     else:
+        # the options the run was started with that its scenario file does not say: the
+        # backend and the seeds (left out, the command was refused or ran the seeds left out)
+        words = []
+        written = doc.get("backend") if isinstance(doc.get("backend"), dict) else {}
+        for key, default in (("arch", "cpu"), ("precision", "f64")):
+            value = started.get(key) if isinstance(started, dict) else None
+            if isinstance(value, str) and value != written.get(key, default):
+                words += [f"--{key}", value]
+        scenario_seeds = doc.get("seeds", [1])
+        if isinstance(begun, list) and begun and begun != scenario_seeds:
+            words += ["--seeds", ",".join(map(str, begun))]
+        options = (" " + shlex.join(words) if words else "") + (" " + given if given else "")
         lines.append("run summary: not written yet (the run has not finished; resume it with "
                      f"`tcd run {shlex.quote(scenario_file) if scenario_file else '<its scenario>'}"
-                     f" --out {shlex.quote(str(out))}{' ' + given if given else ''}"
+                     f" --out {shlex.quote(str(out))}{options}"
                      f"{' --batch' if batch.is_file() else ''} --resume`)" if not holder else
                      "run summary: not written yet")
     return "\n".join(lines)

@@ -1942,3 +1942,31 @@ def test_the_commands_tcd_info_suggests_are_quoted_for_the_shell(micro_run, tmp_
     assert f" --out {shlex.quote(str(run))} --resume`" in info, info
     command = info.split("resume it with `", 1)[1].split("`", 1)[0]
     assert shlex.split(command)[shlex.split(command).index("--out") + 1] == str(run)
+
+
+def test_tcd_info_tells_a_started_sample_from_a_refused_one_and_resumes_as_begun(micro_run,
+                                                                                tmp_path):
+    """`tcd info RUN` said of every started sample without a checkpoint that --resume refused
+    it (a generator is always true), and its resume command left out the --precision and
+    --seeds the run began with, so that command was refused or ran the seeds left out
+    (session 72's review)."""
+    import shutil
+    from tcd import runner
+    _, out = micro_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    (run / "summary.json").unlink()
+    sample = run / "sample_3"
+    for p in sample.iterdir():
+        if p.name not in ("states.h5", ".tcd.lock"):
+            p.unlink()
+    started = json.loads((run / "run.json").read_text())
+    other = "f32" if started["precision"] == "f64" else "f64"
+    (run / "run.json").write_text(json.dumps({**started, "precision": other, "seeds": [3]}))
+    text = (run / "scenario.toml").read_text()
+    (run / "scenario.toml").write_text(text.replace("seeds = [3]", "seeds = [3, 4]", 1))
+    info = runner.run_info(run)
+    assert "sample_3: started, no checkpoint yet" in info, info
+    assert f" --precision {other} --seeds 3 --resume`" in info, info
+    (sample / "prepared.h5").write_bytes(b"")
+    assert "sample_3: its checkpoint.h5 is missing" in runner.run_info(run)
