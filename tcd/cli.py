@@ -205,6 +205,8 @@ def cmd_run(args) -> int:
         resume = args.resume
         if source:
             from .branch import branch_run
+            from .runner import check_run_settings
+            check_run_settings(scenario, args.jobs, scenario.seeds)
             print(f"tcd: {scenario.name}: going on from {source} in {out_dir}:\n"
                   + branch_run(scenario, source, out_dir), file=sys.stderr)
             resume = True

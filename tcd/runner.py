@@ -136,6 +136,23 @@ class Progress:
             self.bar.close()
 
 
+def check_run_settings(scenario, jobs: int, pending) -> None:
+    """What refuses a run of `scenario` with `jobs` processes over the seeds `pending` before
+    anything is written: more partitioned solver threads than cores, a backend that is not
+    there. (`tcd run --from` checks it before it writes the new run's folder: a refusal left
+    that folder behind, and a second try was refused for it: session 72's review.)"""
+    if jobs > 1 and len(pending) > 1 and scenario.solver.schedule == "partitioned":
+        threads = min(jobs, len(pending)) * scenario.solver.threads
+        cores = os.cpu_count() or 1
+        if threads > cores:
+            raise ValueError(
+                f"--jobs {jobs} with [solver] threads = {scenario.solver.threads} runs {threads} "
+                f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
+                f"each other actively and must not share cores; use --jobs "
+                f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
+    backend.check_available(scenario.backend.arch)     # before anything is written
+
+
 def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = True,
                  jobs: int = 1) -> dict:
     """Run every sample of `scenario` into `out_dir`; returns the summary.
@@ -174,20 +191,11 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
     if resume and not pending:
         print(f"tcd: note: {out}: every sample was already done; nothing to resume (the run's "
               "summary is written again)", file=sys.stderr)
-    if jobs > 1 and len(pending) > 1 and scenario.solver.schedule == "partitioned":
-        threads = min(jobs, len(pending)) * scenario.solver.threads
-        cores = os.cpu_count() or 1
-        if threads > cores:
-            raise ValueError(
-                f"--jobs {jobs} with [solver] threads = {scenario.solver.threads} runs {threads} "
-                f"solver threads on {cores} cores: the partitioned schedule's threads wait for "
-                f"each other actively and must not share cores; use --jobs "
-                f"{max(1, cores // scenario.solver.threads)}, fewer threads, or schedule = \"serial\"")
+    check_run_settings(scenario, jobs, pending)
     # every sample a shear starts from is read before anything is written or run (a resumed
     # sample with a checkpoint has its state there)
     check_samples(scenario, [seed for seed in pending if not (
         resume and (out / f"sample_{seed}" / "checkpoint.h5").is_file())])
-    backend.check_available(scenario.backend.arch)     # before anything is written
     with recorded_run(scenario, out, resume):
         if jobs > 1 and len(pending) > 1:
             import concurrent.futures

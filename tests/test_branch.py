@@ -259,6 +259,19 @@ def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, t
     err = capsys.readouterr().err
     assert "a tcd run writes into it now (" in err and "pid 4242 on elsewhere" in err, err
     assert not (tmp_path / "y").exists()
+    # nor on a backend that is not here: refused before the new run's folder is written (it
+    # was left behind, with a checkpoint and run.json, and a second try refused for it:
+    # session 72's review)
+    from tcd import backend as tcd_backend
+
+    def no_gpu(arch):
+        if arch == "gpu":
+            raise tcd_backend.BackendUnavailable("arch 'gpu' requested but Taichi found no GPU")
+    monkeypatch.setattr(tcd_backend, "check_available", no_gpu)
+    assert run_tcd(["run", str(scenario), "--from", str(cut), "--out", str(tmp_path / "z"),
+                    "--arch", "gpu"]) == 2
+    assert "found no GPU" in capsys.readouterr().err
+    assert not (tmp_path / "z").exists()
     # a copy that fails half way (here the checkpoint's write) leaves no half a run behind
     from tcd import branch
     monkeypatch.setattr(branch.io, "save_checkpoint", lambda *a, **k: (_ for _ in ()).throw(
