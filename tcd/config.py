@@ -724,6 +724,12 @@ def apply_settings(text: str, settings, source: str = "<string>") -> str:
                         count = len(items) if isinstance(items, list) else 0
                         raise KeyError(f"no {name}[{k}]: the scenario has {count} "
                                        f"[[{name}]] table{'' if count == 1 else 's'}")
+                    if last and not isinstance(value, dict):
+                        # (a value in an array of tables: tomlkit failed to write it, a
+                        # traceback: session 72's review)
+                        raise KeyError(f"{name}[{k}] is a [[{name}]] table: set one of its "
+                                       f"keys ({name}[{k}].KEY=VALUE), or give a table "
+                                       f"({name}[{k}]={{KEY = VALUE, ...}})")
                     if last:
                         items[k - 1] = value
                     else:

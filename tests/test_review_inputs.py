@@ -419,3 +419,14 @@ def test_api_misuse_is_a_message_not_numpy_s():
     with pytest.raises(TypeError, match="needs the radii and the positions"):
         Simulation(None, [[0, 0, 0]])
     Simulation([1e-3], [[0, 0, 0.1]], walls=None).close()      # None: no walls
+
+
+def test_a_value_set_in_place_of_a_stage_table_is_one_line(tmp_path, capsys):
+    """`--set 'stage[1]=1'` (or a string, an array) put a value into the array of stage tables,
+    which tomlkit then failed to write: a traceback, exit 1 (session 72's review)."""
+    path = _cli_scenario(tmp_path)
+    for value in ("1", '"x"', "[1]"):
+        assert main(["info", str(path), "--set", f"stage[1]={value}"]) == 2, value
+        err = capsys.readouterr().err
+        assert "stage[1] is a [[stage]] table: set one of its keys" in err, err
+        assert err.count("\n") == 1, err
