@@ -136,6 +136,11 @@ class Progress:
             self.bar.close()
 
 
+#: how long (s) a stopped `--jobs` run waits for each worker to end on its own (its running
+#: sample checkpointed at the end of its step) before the pool is shut down
+STOP_WAIT_S = 300.0
+
+
 def check_run_settings(scenario, jobs: int, pending) -> None:
     """What refuses a run of `scenario` with `jobs` processes over the seeds `pending` before
     anything is written: more partitioned solver threads than cores, a backend that is not
@@ -213,26 +218,54 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
             for seed in pending:        # a worker orphaned by a killed run may still write
                 with run_lock(out / f"sample_{seed}"):      # there: refuse before any starts
                     pass
-            with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                                        initializer=_watch_parent,
-                                                        initargs=(os.getpid(),)) as pool:
-                futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
-                                             scenario.backend.arch, scenario.backend.precision,
-                                             seed, str(out / f"sample_{seed}"), resume, progress,
-                                             worker_threads)
-                           for seed in pending}
-                with ForwardTerm(pool):
-                    try:
-                        for seed, future in futures.items():
-                            done[seed] = future.result()
-                    except KeyboardInterrupt:
-                        # stopped (Ctrl-C, SIGTERM): the samples not handed to a worker yet are
-                        # dropped, a sample queued in a worker ends at once, not started
-                        # (_sample_job), and the running ones checkpoint and stop; their resume
-                        # runs them all. A sample queued used to start once a worker was free,
-                        # the parent waiting for it to the end (session 60).
-                        pool.shutdown(wait=True, cancel_futures=True)
-                        raise
+            # the run's stop, seen by every worker (a worker still starting when the signal
+            # came did not see it)
+            stop = ctx.Event()
+            # the workers start with the stop signals blocked, until their initializer has
+            # put their own handler in place: a Ctrl-C or SIGTERM in the seconds a worker takes
+            # to start killed it, the pool broke, and the run ended in a traceback or waited
+            # for ever on a worker that the pool's SIGTERM could not end (session 72's review)
+            with worker_signals.StartupBlocked() as blocked:
+                pool = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=workers, mp_context=ctx, initializer=_watch_parent,
+                    initargs=(os.getpid(), stop))
+                try:
+                    futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
+                                                 scenario.backend.arch,
+                                                 scenario.backend.precision, seed,
+                                                 str(out / f"sample_{seed}"), resume, progress,
+                                                 worker_threads)
+                               for seed in pending}
+                except BaseException:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
+            with pool, ForwardTerm(pool, stop):
+                try:
+                    blocked.release()       # a signal that came meanwhile lands here
+                    for seed, future in futures.items():
+                        done[seed] = future.result()
+                except (KeyboardInterrupt, concurrent.futures.process.BrokenProcessPool) as exc:
+                    # stopped (Ctrl-C, SIGTERM): the samples not handed to a worker yet are
+                    # dropped, a sample queued in a worker ends at once, not started
+                    # (_sample_job), and the running ones checkpoint and stop; their resume
+                    # runs them all. A sample queued used to start once a worker was free,
+                    # the parent waiting for it to the end (session 60).
+                    stopped = stop.is_set() or isinstance(exc, KeyboardInterrupt)
+                    stop.set()
+                    # each worker ends once idle (_watch_parent): waited for here, so that one
+                    # still starting is not left without the pool's queues (a traceback of
+                    # its start-up, the parent gone: session 72)
+                    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                        proc.join(timeout=STOP_WAIT_S)
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    if stopped:
+                        raise KeyboardInterrupt from None
+                    raise ValueError(
+                        f"a --jobs worker process ended abruptly (killed, or out of memory?): "
+                        f"{exc}; the other samples stopped at a checkpoint: resume the run "
+                        "with --resume") from None
+                finally:
+                    blocked.release()
         else:
             backend.init(scenario.backend.arch, scenario.backend.precision)
             for seed in pending:
@@ -948,16 +981,29 @@ def run_batch(scenario, out_dir, *, resume: bool = False, progress: bool = True)
 _JOB_RUNNING = threading.Lock()
 
 
-def _watch_parent(parent: int) -> None:
+def _watch_parent(parent: int, stop=None) -> None:
     """A `--jobs` worker's initializer: when its parent is gone (SIGKILL, an out-of-memory
     kill), the worker finishes the sample it is running (its files, then its lock) and ends.
     It used to wait for its next sample for ever, holding its memory (session 47's audit: both
-    workers of a killed `--jobs 2` run still asleep minutes after their samples were done)."""
+    workers of a killed `--jobs 2` run still asleep minutes after their samples were done).
+    `stop`: the run's stop (an Event the parent sets). A worker told to stop ends once it is
+    idle,
+    so that a pool shut down after a worker died (its SIGTERM to the others) is not left
+    waiting for ever on one that only noted it."""
     worker_signals.enter_worker()       # a Ctrl-C or SIGTERM between samples: none starts after
+    worker_signals.stop_event = stop
     worker_signals.guard_report_streams()       # its terminal closed: its samples go on
+
     def watch():
+        idle_since_stop = 0
         while os.getppid() == parent:
             time.sleep(0.5)
+            if worker_signals.stopping() and not _JOB_RUNNING.locked():
+                idle_since_stop += 1
+                if idle_since_stop >= 2 and _JOB_RUNNING.acquire(blocking=False):
+                    os._exit(0)     # idle for two looks (its last result sent): done
+            else:
+                idle_since_stop = 0
         with _JOB_RUNNING:
             os._exit(0)
     threading.Thread(target=watch, name="tcd-parent-watch", daemon=True).start()
@@ -968,7 +1014,7 @@ def _sample_job(text, source, arch, precision, seed, sample_dir, resume, progres
     """A sample in a `--jobs` worker; one that comes after the worker was told to stop
     (worker_signals.stop_requested: a SIGTERM or Ctrl-C during its previous sample, or between
     two) is not started (KeyboardInterrupt before anything is written)."""
-    if worker_signals.stop_requested:
+    if worker_signals.stopping():
         raise KeyboardInterrupt(f"sample {seed} not started: the run was stopped")
     with _JOB_RUNNING:
         return _run_sample_job(text, source, arch, precision, seed, sample_dir, resume,
@@ -999,7 +1045,17 @@ class DeferredInterrupt(SignalScope):
     signals = worker_signals.STOP_SIGNALS
 
     def __init__(self):
-        self.pending = False
+        self._pending = False
+
+    @property
+    def pending(self) -> bool:
+        """A stop is due: a signal came, or (in a `--jobs` worker) the run's parent stopped
+        it (a signal to the parent alone, or one that came while this worker started)."""
+        return self._pending or (worker_signals.in_worker and worker_signals.stopping())
+
+    @pending.setter
+    def pending(self, value: bool) -> None:
+        self._pending = value
 
     def __enter__(self):
         super().__enter__()
@@ -1010,9 +1066,9 @@ class DeferredInterrupt(SignalScope):
     def _handler(self, signum, frame):
         if worker_signals.in_worker:            # the stop holds for its later samples
             worker_signals.stop_requested = True
-        if self.pending:
+        if self._pending:               # a second signal (the parent's stop is not one)
             raise KeyboardInterrupt
-        self.pending = True
+        self._pending = True
 
 
 class ForwardTerm(SignalScope):
@@ -1023,10 +1079,12 @@ class ForwardTerm(SignalScope):
     the job already.) Installed as SignalScope says."""
     signals = worker_signals.END_SIGNALS
 
-    def __init__(self, pool):
-        self.pool = pool
+    def __init__(self, pool, stop=None):
+        self.pool, self.stop = pool, stop
 
     def _handler(self, signum, frame):
+        if self.stop is not None:
+            self.stop.set()
         # ProcessPoolExecutor keeps its worker processes in _processes (pid -> Process; None
         # once it has shut down)
         for proc in list((getattr(self.pool, "_processes", None) or {}).values()):

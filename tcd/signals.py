@@ -25,6 +25,43 @@ in_worker = False
 stop_requested = False
 
 
+#: in a worker: the run's stop (a multiprocessing Event its parent sets), or None
+stop_event = None
+
+
+def stopping() -> bool:
+    """In a worker: whether the run was told to stop (a signal it saw, or its parent's)."""
+    return stop_requested or (stop_event is not None and stop_event.is_set())
+
+
+class StartupBlocked:
+    """While open, and after until `release` (the parent of `tcd run --jobs` starting its
+    worker processes), the stop signals are blocked in this thread: one that comes meanwhile
+    waits, and is delivered at `release`; the workers, which inherit the block (a signal mask outlives
+    fork and exec), cannot be killed before their initializer has put their own handler in
+    place and lifted it (`enter_worker`). Where the platform has no signal masks, nothing."""
+
+    def __enter__(self):
+        self._old = None
+        if hasattr(signal, "pthread_sigmask") and \
+                threading.current_thread() is threading.main_thread():
+            self._old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        return self
+
+    def release(self) -> None:
+        """Lift the block (once): a signal that came meanwhile is delivered now, to this
+        process's handler (the caller lifts it where that handler's effect is taken care of:
+        a KeyboardInterrupt inside its `try`)."""
+        if self._old is not None:
+            old, self._old = self._old, None
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+    def __exit__(self, *exc):
+        if exc[0] is not None:          # the block ends with an error: lifted now
+            self.release()
+        return False
+
+
 def note_stop(signum, frame):
     """A worker's handler for SIGINT and SIGTERM between its samples: remember the request
     (`stop_requested`) and live on, so that its pool is not broken and the samples still
@@ -35,14 +72,18 @@ def note_stop(signum, frame):
 
 def enter_worker() -> None:
     """Mark this process as a `tcd run --jobs` worker and install `note_stop` for SIGINT and
-    SIGTERM where their default action is in force (a signal ignored stays ignored). A
-    sample's own handler (runner.DeferredInterrupt) replaces it while the sample runs."""
+    SIGTERM where their default action is in force (a signal ignored stays ignored), then lift
+    the block of the stop signals it was started with (StartupBlocked: one that came while it
+    started is delivered now, to `note_stop`). A sample's own handler
+    (runner.DeferredInterrupt) replaces it while the sample runs."""
     global in_worker
     in_worker = True
     if threading.current_thread() is threading.main_thread():
         for signum in STOP_SIGNALS:
             if signal.getsignal(signum) == _default(signum):
                 signal.signal(signum, note_stop)
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 def _default(signum):

@@ -1436,6 +1436,47 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
 
 
+@pytest.mark.skipif(not pathlib.Path("/proc/self/task").exists(), reason="needs /proc")
+@pytest.mark.parametrize("how", ["SIGTERM to the parent", "SIGINT to the process group"])
+def test_a_parallel_run_stopped_while_its_workers_start_ends_in_one_line(micro_run, tmp_path,
+                                                                         how):
+    """A Ctrl-C or SIGTERM in the seconds `tcd run --jobs 2` takes to start its workers killed
+    a worker, broke the pool, and ended the run in a traceback (BrokenProcessPool) or left it
+    waiting for ever on the other worker, which the pool's SIGTERM could not end (session 72's
+    review). The workers now start with the stop signals blocked, the run's stop reaches them
+    as an event, and a stopped worker ends once idle: the run stops with the resume line."""
+    from tcd.cli import EXIT_INTERRUPTED
+    scenario, out = micro_run
+    two = tmp_path / "two.toml"
+    two.write_text(_shear_only((out / "sample_3" / "prepared.h5").as_posix(), "[3, 4]"))
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "tcd.cli", "run", str(two), "--out", str(run),
+                             "--jobs", "2", "--arch", backend.arch(), "--precision",
+                             backend.precision()], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    children = pathlib.Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None and not (
+                children.exists() and len(children.read_text().split()) >= 2):
+            time.sleep(0.01)
+        assert proc.poll() is None, "the run ended before its workers started"
+        assert not (run / "sample_3" / "states.h5").exists(), "too late: a sample started"
+        if how.startswith("SIGTERM"):
+            proc.send_signal(signal.SIGTERM)
+        else:
+            os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == EXIT_INTERRUPTED, err[-3000:]
+    assert "Traceback" not in err and "interrupted; resume with: " in err, err[-3000:]
+    assert not (run / "summary.json").exists()
+
+
 def test_a_stopped_parallel_run_starts_none_of_its_queued_samples(micro_run, tmp_path):
     """SIGTERM to `tcd run --jobs 2` of three samples while the first two run: both
     checkpoint and stop, the third, queued, is not started, and the parent ends at once with
