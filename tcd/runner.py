@@ -262,7 +262,8 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                         raise KeyboardInterrupt from None
                     raise ValueError(
                         f"a --jobs worker process ended abruptly (killed, or out of memory?): "
-                        f"{exc}; the other samples stopped at a checkpoint: resume the run "
+                        f"{str(exc).rstrip('.')}; the other samples stopped at a checkpoint: "
+                        "resume the run "
                         "with --resume") from None
                 finally:
                     blocked.release()
