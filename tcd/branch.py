@@ -254,6 +254,24 @@ def plan_branch(scenario, source, out) -> dict:
             arrays.update(series)
             new_meta["series_keys"] = keys
             files = [p for p in files if p != series_file and p != series_file.with_suffix(".csv")]
+        if phase is not None:
+            # the stage's steps ran under the sweep cap of their run: recorded, so that its
+            # `steps_at_sweep_cap` counts each against its own (it counted them all against
+            # the new one: session 72's review)
+            def cap(scn):
+                own = getattr(scn.stages[stage_idx], "max_sweeps", None)
+                return int(own if own is not None else scn.solver.max_sweeps)
+            if cap(old) != cap(scenario):
+                rows = len(np.asarray(arrays.get("series/sweeps", [])))
+                caps = dict(new_result.get("sweep_caps", {}))
+                caps[str(stage_idx)] = list(caps.get(str(stage_idx), [[0, cap(old)]])) + [
+                    [rows, cap(scenario)]]
+                new_result["sweep_caps"] = caps
+        if old.output.snapshot_every != scenario.output.snapshot_every and "next_snapshot" in meta:
+            # the next snapshot on the new schedule (it came at the old one's due time first:
+            # a branch at 0.76 s to snapshots every 0.01 s wrote none before 0.80 s)
+            from .runner import next_snapshot_after
+            new_meta["next_snapshot"] = next_snapshot_after(t, scenario.output.snapshot_every)
         new_meta["result"] = new_result
         plans[seed] = (arrays, new_meta, files)
     return plans

@@ -1296,7 +1296,8 @@ def _run_sample(scn, seed: int, sample_dir: pathlib.Path, *, resume: bool, progr
                                                enumerate(PREPARE_PHASES))}
                      if stage.kind == "prepare" else {})
         _print_warnings(seed, numbers)
-        numbers.update(solver_numbers(arrays, sim.settings.max_sweeps))
+        numbers.update(solver_numbers(arrays, sim.settings.max_sweeps,
+                                      result.get("sweep_caps", {}).get(str(stage_idx))))
         numbers["wall_time_s"] = time.perf_counter() - t_stage
         numbers["steps"] = int(sum(rec["steps"] for rec in result.get("phases", [])
                                    if rec.get("stage_index", stage_idx) == stage_idx
@@ -1352,14 +1353,19 @@ def _shear_numbers(proto, sim, phase, arrays: dict, states, first_frame) -> tupl
     return numbers, attrs
 
 
-def solver_numbers(arrays: dict, max_sweeps: int) -> dict:
+def solver_numbers(arrays: dict, max_sweeps: int, caps=None) -> dict:
     """How well a stage's steps converged, from its series (every step's at series_every = 1,
     else those recorded): `recorded_steps`, `steps_at_sweep_cap` (the steps that stopped at
-    max_sweeps, their residual above the tolerance) and `largest_residual`."""
+    max_sweeps, their residual above the tolerance) and `largest_residual`. `caps`: where a
+    run went on from another under another cap (`tcd run --from`), [[first row, cap], ...]:
+    each row is counted against the cap it ran under."""
     sweeps = np.asarray(arrays.get("sweeps", []), dtype=float)
     residual = np.asarray(arrays.get("residual", []), dtype=float)
+    limit = np.full(len(sweeps), float(max_sweeps))
+    for start, cap in sorted(caps or []):
+        limit[int(start):] = float(cap)
     out = {"recorded_steps": int(len(sweeps)),
-           "steps_at_sweep_cap": int(np.count_nonzero(sweeps >= max_sweeps))}
+           "steps_at_sweep_cap": int(np.count_nonzero(sweeps >= limit))}
     if residual.size and np.any(np.isfinite(residual)):
         out["largest_residual"] = float(np.nanmax(residual))
     return out

@@ -213,6 +213,37 @@ def test_the_frames_a_branch_inherits_keep_their_time_step(shear, tmp_path, monk
         assert _time_steps_after(f, {"frames": frames}, 5e-4) is None
 
 
+def test_the_steps_at_the_sweep_cap_count_each_step_against_its_own_cap(shear, tmp_path,
+                                                                         monkeypatch):
+    """A branch under another max_sweeps: the summary's steps_at_sweep_cap counted the steps
+    RUN took against the new cap (all 120 of them at a cap of 5, for 8 at RUN's 1000: session
+    72's review). Each step now counts against the cap it ran under."""
+    scenario, _ = shear
+    cut = tmp_path / "cut"
+    meta = _interrupted(scenario, cut, monkeypatch)
+    n = meta["step_in_phase"]
+    capped = tmp_path / "capped.toml"
+    assert "max_sweeps = 500" in scenario.read_text()
+    capped.write_text(scenario.read_text().replace("max_sweeps = 500", "max_sweeps = 3", 1)
+                      .replace("snapshot_every = 0.05", "snapshot_every = 0.002"))
+    assert run_tcd(["run", str(capped), "--from", str(cut), "--out", str(tmp_path / "new")]) == 0
+    sweeps = _series(tmp_path / "new")["sweeps"]
+    summary = json.loads((tmp_path / "new" / "sample_3" / "summary.json").read_text())
+    old_cap = 500
+    assert np.count_nonzero(sweeps[:n] >= 3) > 0             # the mistake would show
+    expected = int(np.count_nonzero(sweeps[:n] >= old_cap) + np.count_nonzero(sweeps[n:] >= 3))
+    assert summary["stages"]["0:shear"]["steps_at_sweep_cap"] == expected
+    assert summary["sweep_caps"] == {"0": [[0, old_cap], [n, 3]]}
+    # and the snapshots go on at the new schedule from the branch on (the first came at the
+    # old one's due time: session 72's review)
+    import h5py
+    from tcd.runner import next_snapshot_after
+    with h5py.File(tmp_path / "new" / "sample_3" / "states.h5", "r") as f:
+        times = [float(f["frames"][k].attrs["time"]) for k in sorted(f["frames"], key=int)]
+    later = [x for x in times if x > meta["time"] + 1e-12]
+    assert later and later[0] == pytest.approx(next_snapshot_after(meta["time"], 0.002), abs=1e-9)
+
+
 def test_what_a_branch_may_not_do_is_refused_before_anything_is_written(shear, tmp_path,
                                                                         monkeypatch, capsys):
     scenario, whole = shear
