@@ -225,48 +225,54 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
             # put their own handler in place: a Ctrl-C or SIGTERM in the seconds a worker takes
             # to start killed it, the pool broke, and the run ended in a traceback or waited
             # for ever on a worker that the pool's SIGTERM could not end (session 72's review)
-            with worker_signals.StartupBlocked() as blocked:
-                pool = concurrent.futures.ProcessPoolExecutor(
-                    max_workers=workers, mp_context=ctx, initializer=_watch_parent,
-                    initargs=(os.getpid(), stop))
-                try:
-                    futures = {seed: pool.submit(_sample_job, scenario.text, scenario.source,
-                                                 scenario.backend.arch,
-                                                 scenario.backend.precision, seed,
-                                                 str(out / f"sample_{seed}"), resume, progress,
-                                                 worker_threads)
-                               for seed in pending}
-                except BaseException:
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise
-            with pool, ForwardTerm(pool, stop):
-                try:
-                    blocked.release()       # a signal that came meanwhile lands here
-                    for seed, future in futures.items():
-                        done[seed] = future.result()
-                except (KeyboardInterrupt, concurrent.futures.process.BrokenProcessPool) as exc:
-                    # stopped (Ctrl-C, SIGTERM): the samples not handed to a worker yet are
-                    # dropped, a sample queued in a worker ends at once, not started
-                    # (_sample_job), and the running ones checkpoint and stop; their resume
-                    # runs them all. A sample queued used to start once a worker was free,
-                    # the parent waiting for it to the end (session 60).
-                    stopped = stop.is_set() or isinstance(exc, KeyboardInterrupt)
-                    stop.set()
-                    # each worker ends once idle (_watch_parent): waited for here, so that one
-                    # still starting is not left without the pool's queues (a traceback of
-                    # its start-up, the parent gone: session 72)
-                    for proc in list((getattr(pool, "_processes", None) or {}).values()):
-                        proc.join(timeout=STOP_WAIT_S)
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    if stopped:
-                        raise KeyboardInterrupt from None
-                    raise ValueError(
-                        f"a --jobs worker process ended abruptly (killed, or out of memory?): "
-                        f"{str(exc).rstrip('.')}; the other samples stopped at a checkpoint: "
-                        "resume the run "
-                        "with --resume") from None
-                finally:
-                    blocked.release()
+            # (ForwardTerm first: the block holds in this thread only, and a SIGTERM that
+            # another thread of this process takes must not find its default action)
+            with ForwardTerm(None, stop) as forward:
+                with worker_signals.StartupBlocked() as blocked:
+                    pool = concurrent.futures.ProcessPoolExecutor(
+                        max_workers=workers, mp_context=ctx, initializer=_watch_parent,
+                        initargs=(os.getpid(), stop))
+                    forward.pool = pool
+                    try:
+                        futures = {seed: pool.submit(_sample_job, scenario.text,
+                                                     scenario.source, scenario.backend.arch,
+                                                     scenario.backend.precision, seed,
+                                                     str(out / f"sample_{seed}"), resume,
+                                                     progress, worker_threads)
+                                   for seed in pending}
+                    except BaseException:
+                        stop.set()
+                        blocked.release()
+                        pool.shutdown(wait=True, cancel_futures=True)
+                        raise
+                with pool:
+                    try:
+                        blocked.release()       # a signal that came meanwhile lands here
+                        for seed, future in futures.items():
+                            done[seed] = future.result()
+                    except (KeyboardInterrupt, concurrent.futures.process.BrokenProcessPool) \
+                            as exc:
+                        # stopped (Ctrl-C, SIGTERM): the samples not handed to a worker yet
+                        # are dropped, a sample queued in a worker ends at once, not started
+                        # (_sample_job), and the running ones checkpoint and stop; their
+                        # resume runs them all. A sample queued used to start once a worker
+                        # was free, the parent waiting for it to the end (session 60).
+                        stopped = stop.is_set() or isinstance(exc, KeyboardInterrupt)
+                        stop.set()
+                        # each worker ends once idle (_watch_parent): waited for here, so
+                        # that one still starting is not left without the pool's queues (a
+                        # traceback of its start-up, the parent gone: session 72)
+                        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                            proc.join(timeout=STOP_WAIT_S)
+                        pool.shutdown(wait=True, cancel_futures=True)
+                        if stopped:
+                            raise KeyboardInterrupt from None
+                        raise ValueError(
+                            f"a --jobs worker process ended abruptly (killed, or out of "
+                            f"memory?): {str(exc).rstrip('.')}; the other samples stopped at a "
+                            "checkpoint: resume the run with --resume") from None
+                    finally:
+                        blocked.release()
         else:
             backend.init(scenario.backend.arch, scenario.backend.precision)
             for seed in pending:

@@ -378,7 +378,8 @@ def test_render_initialises_the_backend_and_passes_options(tmp_path, stub, backe
     states = tmp_path / "states.h5"
     states.write_bytes(b"")
     calls = []
-    stub("render", render_file=lambda path, out, **kw: calls.append((path, out, kw)),
+    stub("render", WriterMissing=type("WriterMissing", (RuntimeError,), {}),
+         render_file=lambda path, out, **kw: calls.append((path, out, kw)),
          check_output=lambda out, frame=-1: calls.append(("checked", out, frame)))
     inits = []
     monkeypatch.setattr(tcd, "init", lambda a, p: inits.append((a, p)))
