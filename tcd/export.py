@@ -88,14 +88,11 @@ TIME_STEPS_ATTR = "time_steps"
 def frame_time_steps(f, count: int) -> list:
     """H of each of the `count` frames of the open states file `f` (None where unknown): the
     `time_steps` a branch recorded, else its scenario's one time step for every frame."""
-    text = f.attrs.get("scenario", "")
-    text = text.decode() if isinstance(text, bytes) else str(text)
-    steps = [_time_step(text)] * count
-    raw = f.attrs.get(TIME_STEPS_ATTR)
-    if raw is None:
+    steps = [_time_step(io._attr_text(f, "scenario"))] * count
+    if TIME_STEPS_ATTR not in f.attrs:
         return steps
     try:
-        segments = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        segments = json.loads(io._attr_text(f, TIME_STEPS_ATTR))
         segments = sorted((int(k), float(h)) for k, h in segments)
     except (ValueError, TypeError):
         raise ValueError(f"{f.filename}: its {TIME_STEPS_ATTR} attribute is not readable "

@@ -441,12 +441,11 @@ def _recorded_scenario_text(run_dir: Path) -> str | None:
                 if name == "states.h5":
                     import h5py
                     with h5py.File(sample / name, "r") as f:
-                        text = f.attrs.get("scenario", "")
+                        text = io._attr_text(f, "scenario")
                 else:
                     text = io.checkpoint_meta(sample / name)[0].get("scenario_text", "")
             except (OSError, ValueError, KeyError, RuntimeError, AttributeError):
                 continue
-            text = text.decode() if isinstance(text, bytes) else text
             if isinstance(text, str) and text.strip():
                 return text
     return None

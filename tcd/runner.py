@@ -242,7 +242,6 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                                    for seed in pending}
                     except BaseException:
                         stop.set()
-                        blocked.release()
                         pool.shutdown(wait=True, cancel_futures=True)
                         raise
                 with pool:
@@ -271,8 +270,6 @@ def run_scenario(scenario, out_dir, *, resume: bool = False, progress: bool = Tr
                             f"a --jobs worker process ended abruptly (killed, or out of "
                             f"memory?): {str(exc).rstrip('.')}; the other samples stopped at a "
                             "checkpoint: resume the run with --resume") from None
-                    finally:
-                        blocked.release()
         else:
             backend.init(scenario.backend.arch, scenario.backend.precision)
             for seed in pending:
