@@ -1529,9 +1529,13 @@ def test_a_parallel_worker_told_to_stop_starts_no_further_sample(tmp_path, monke
     from tcd import runner, signals
     monkeypatch.setattr(signals, "in_worker", False)
     monkeypatch.setattr(signals, "stop_requested", False)
-    outer = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    monkeypatch.setattr(signals, "stop_event", None)
+    # every stop signal enter_worker takes (SIGHUP too) given back after: a SIGHUP left with
+    # note_stop would be noted, not acted on, by the rest of this pytest process
+    outer = {s: signal.getsignal(s) for s in signals.STOP_SIGNALS}
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    for s in signals.END_SIGNALS:
+        signal.signal(s, signal.SIG_DFL)
     try:
         signals.enter_worker()
         assert signals.in_worker and signal.getsignal(signal.SIGTERM) is signals.note_stop
@@ -1551,6 +1555,7 @@ def test_a_parallel_worker_told_to_stop_starts_no_further_sample(tmp_path, monke
     finally:
         for s, h in outer.items():
             signal.signal(s, h)
+    assert all(signal.getsignal(s) is not signals.note_stop for s in signals.STOP_SIGNALS)
 
 
 def test_a_run_killed_before_its_first_checkpoint_resumes_from_the_start(micro_run, tmp_path,
