@@ -1533,9 +1533,8 @@ def test_a_parallel_worker_told_to_stop_starts_no_further_sample(tmp_path, monke
     # every stop signal enter_worker takes (SIGHUP too) given back after: a SIGHUP left with
     # note_stop would be noted, not acted on, by the rest of this pytest process
     outer = {s: signal.getsignal(s) for s in signals.STOP_SIGNALS}
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    for s in signals.END_SIGNALS:
-        signal.signal(s, signal.SIG_DFL)
+    for s in signals.STOP_SIGNALS:
+        signal.signal(s, signals._default(s))
     try:
         signals.enter_worker()
         assert signals.in_worker and signal.getsignal(signal.SIGTERM) is signals.note_stop
