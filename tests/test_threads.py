@@ -196,7 +196,9 @@ def test_a_kernel_cache_that_cannot_be_written_is_replaced_not_a_crash_at_exit(t
     blocked.write_text("not a folder")
     (tmp_path / "tmp").mkdir()
     fallback = tmp_path / "tmp" / f"tcd-taichi-cache-{os.getuid()}"
-    for env in ({"HOME": str(blocked / "home")},
+    # the caller's own TI_OFFLINE_CACHE_FILE_PATH (a suite run with its cache elsewhere)
+    # would take precedence over the blocked HOME: unset for that case
+    for env in ({"HOME": str(blocked / "home"), "TI_OFFLINE_CACHE_FILE_PATH": None},
                 {"TI_OFFLINE_CACHE_FILE_PATH": str(blocked / "cache")}):
         env = dict(env, TMPDIR=str(tmp_path / "tmp"), XDG_CACHE_HOME=None)
         out = run_init(env, f"tcd.init('cpu', 'f64')\n{SCAN}")
@@ -215,7 +217,8 @@ def test_tcd_knows_where_taichi_caches_its_kernels(tmp_path):
     call = ("tcd.init('cpu', 'f64')\nimport taichi as ti\n"
             "print('paths', ti.lang.impl.current_cfg().offline_cache_file_path, "
             "backend.taichi_cache_path())")
-    for env in ({"XDG_CACHE_HOME": None}, {"XDG_CACHE_HOME": str(tmp_path / "xdg")},
+    unset = {"TI_OFFLINE_CACHE_FILE_PATH": None}        # the caller's, if set, would win
+    for env in ({"XDG_CACHE_HOME": None, **unset}, {"XDG_CACHE_HOME": str(tmp_path / "xdg"), **unset},
                 {"TI_OFFLINE_CACHE_FILE_PATH": str(tmp_path / "given")}):
         out = run_init(env, call)
         line = [t for t in out.stdout.splitlines() if t.startswith("paths ")]
