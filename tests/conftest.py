@@ -117,6 +117,21 @@ def run_tcd(argv) -> int:
     return cli.main(argv)
 
 
+def default_stop_signals() -> None:
+    """preexec_fn of a child whose answer to a stop signal a test checks: SIGINT, SIGTERM and
+    SIGHUP at their default actions in it. A shell without job control starts a background
+    command (`pytest ... &`) with SIGINT ignored, `nohup` starts it with SIGHUP ignored, and
+    an ignored signal stays ignored through fork and exec; tcd keeps ignoring a signal it was
+    started ignoring (signals.SignalScope), as `nohup` asks. Without this such a child ran to
+    its end, as it should, and the test failed because of the shell the suite was started
+    from (session 74: the closed terminal's test under `nohup`; session 72's Ctrl-C "lost"
+    under load was a suite started in the background)."""
+    import signal
+    for signum in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if signum is not None:
+            signal.signal(signum, signal.SIG_DFL)
+
+
 def env_without_thread_settings(**extra) -> dict:
     """This process's environment for a child, less TCD_CPU_THREADS, TCD_PARALLEL_LOOPS
     (pytest_configure sets the first) and TCD_FAST_MATH, plus `extra`."""

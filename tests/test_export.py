@@ -163,8 +163,9 @@ def write(path, mesh, **kw):
 meshio.write = write
 sys.exit(cli.main(["export", {str(states)!r}, "--out", {str(out)!r}]))
 """
+    from conftest import default_stop_signals
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          timeout=300)
+                          timeout=300, preexec_fn=default_stop_signals)
     assert proc.returncode == cli.EXIT_INTERRUPTED, (proc.returncode, proc.stderr)
     assert "interrupted" in proc.stderr
     names = sorted(p.name for p in out.iterdir())
