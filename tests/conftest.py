@@ -222,13 +222,14 @@ def pytest_configure(config):
     config.addinivalue_line(
         "markers", "f64_only: the test compares two runs of the same code (a buffer refit, a "
         "launch split, a neighbour skin) bit for bit, which does not depend on the precision, "
-        "or runs a tool that works in f64 itself (the renderer's reference image): the f32 "
-        "pass (test_precision_f32.py, --precision f32) skips it")
+        "or runs a tool that works in f64 itself (the renderer's reference image), or checks "
+        "integer bookkeeping no floating-point number enters (the scans, the colouring, the "
+        "pool of containers): the f32 pass (test_precision_f32.py, --precision f32) skips it")
 
 
 def pytest_collection_modifyitems(session, config, items):
     if config.getoption("--precision") == "f32":
-        skip = pytest.mark.skip(reason="f64_only: an equality of two runs, checked in f64")
+        skip = pytest.mark.skip(reason="f64_only: does not depend on the precision, checked in f64")
         for item in items:
             if item.get_closest_marker("f64_only"):
                 item.add_marker(skip)

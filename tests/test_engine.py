@@ -63,6 +63,7 @@ def test_grid_broad_phase_equals_brute_force(seed):
     assert found == sorted(found), "contacts are not in canonical (i, j) order"
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 @pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 4097, 100_003])
 def test_exclusive_scan_equals_the_cumulative_sum(n):
     """contacts.exclusive_scan (the CSR of the grid, the neighbour list and the contacts):
@@ -113,6 +114,7 @@ def test_default_cell_size_minimises_the_pair_checks():
     assert items(c) < 0.25 * items(2 * (2 * r.min() + alert))
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 def test_each_count_and_its_scan_in_one_launch_give_the_running_sums():
     """The grid's incidences, the neighbour list and the contact list are each counted and
     scanned in one launch (contacts._scan_loops after the counting loop): every start array is
@@ -152,6 +154,7 @@ def test_broad_phase_with_particles_outside_grid_and_growing_buffers(small_class
     assert any("neighbour pairs" in e for e in sim.grow_events)
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 def test_small_simulations_share_their_fields_and_compiled_kernels():
     """Simulations of up to a few hundred spheres draw the same capacity classes
     (state.MIN_SLOTS): the second of two piles of different sizes gets the containers the first
@@ -177,6 +180,7 @@ def test_small_simulations_share_their_fields_and_compiled_kernels():
     assert len(sk.nlgs_serial._primal.compiled_kernels) == compiled
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 def test_the_pool_hands_out_its_oldest_free_containers_as_one_set():
     """After two simulations held at once are closed (the second last, so that the last one
     freed of each kind is the second's), the next simulation gets the first one's
@@ -210,6 +214,7 @@ def test_the_pool_hands_out_its_oldest_free_containers_as_one_set():
     third.close()
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 def test_the_step_kernels_compile_once_for_every_schedule():
     """step_begin and step_end take their switches (warm start, bond blocks, projection) at run
     time: a coloured simulation after a serial one, on the same pooled containers, steps with
@@ -285,6 +290,7 @@ def test_neighbour_skin_changes_no_number():
     assert c[2] < b[2] < a[2] < 1500, (a[2], b[2], c[2])
 
 
+@pytest.mark.f64_only   # integer bookkeeping, the same in either precision: checked in f64
 @pytest.mark.parametrize("colouring", ["greedy", "rounds"])
 @pytest.mark.parametrize("blocks", [False, True])
 def test_colouring_never_shares_a_dynamic_body(blocks, colouring):
