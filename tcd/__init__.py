@@ -1,7 +1,20 @@
 """tcd: Taichi Contact Dynamics for granular materials (rigid spheres, Moreau-Jean, NLGS)."""
 
+import os as _os
+
 __version__ = "0.1.0"
 __all__ = ["init", "__version__"]
+
+if "HOME" not in _os.environ:
+    # Taichi 1.7.4 aborts the process when it is imported without HOME (core.cpp,
+    # get_repo_dir: "Assertion failure: home != nullptr"), as under a cron job, a service or
+    # `env -i`: the user's home from the password database, else the temporary folder
+    # (session 74's review)
+    _home = _os.path.expanduser("~")
+    if _home == "~":
+        import tempfile as _tempfile
+        _home = _tempfile.gettempdir()
+    _os.environ["HOME"] = _home
 
 
 def init(arch: str = "cpu", precision: str = "f64", **kwargs) -> None:

@@ -142,6 +142,7 @@ def init(arch: str = "cpu", precision: str = "f64", *, debug: bool = False,
     fast_launch = launch.enabled()          # a bad TCD_FAST_LAUNCH is refused before ti.init
     fp = ti.f64 if precision == "f64" else ti.f32
     ti_arch = ti.cpu if arch == "cpu" else gpu_arch()
+    check_taichi_arch_env(arch)
     extra = {} if cpu_threads is None else {"cpu_max_num_threads": cpu_threads}
     if not os.environ.get("TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES"):
         # Taichi's offline kernel cache keeps 100 MB by default and evicts a quarter of it (least
@@ -305,10 +306,34 @@ def gpu_arch():
 
 
 def check_available(arch: str) -> None:
-    """Raise BackendUnavailable now if `arch` cannot run here (a run checks this before it
-    writes anything). Does not initialise Taichi."""
+    """Raise BackendUnavailable now if `arch` cannot run here, and ValueError if Taichi's own
+    TI_ARCH would put it elsewhere (a run checks this before it writes anything). Does not
+    initialise Taichi."""
+    if _state["arch"] is None:
+        check_taichi_arch_env(arch)
     if arch == "gpu" and _state["arch"] != "gpu":
         gpu_arch()
+
+
+def check_taichi_arch_env(arch: str) -> None:
+    """ti.init takes the environment's TI_ARCH over the arch it is given (with a note at
+    Taichi's info level, which tcd does not show), and aborts the process on a name it does
+    not know (TI_ARCH=cpu): a run asked for on the CPU went to a GPU, or died (session 74's
+    review). Refused here by name, unless TI_ARCH names this CPU for arch "cpu" or one of
+    GPU_ARCHS for arch "gpu" (a choice among the GPU backends: Taichi takes it)."""
+    name = os.environ.get("TI_ARCH")
+    if name is None:
+        return
+    known = ti._lib.core.Arch.__members__
+    if name not in known:
+        raise ValueError(f"the environment variable TI_ARCH={name!r} is not an arch Taichi "
+                         f"knows ({', '.join(known)}), and Taichi would abort on it: unset TI_ARCH "
+                         f"(tcd's arch is chosen with --arch, or tcd.init)")
+    if (name in GPU_ARCHS) if arch == "gpu" else (known[name] == ti.cpu):
+        return
+    raise ValueError(f"the environment variable TI_ARCH={name!r} would make Taichi run on "
+                     f"{name}, not on the arch asked for ({arch}): unset TI_ARCH (tcd's arch "
+                     f"is chosen with --arch, or tcd.init)")
 
 
 def initialized() -> bool:

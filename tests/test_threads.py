@@ -225,3 +225,36 @@ def test_tcd_knows_where_taichi_caches_its_kernels(tmp_path):
         assert out.returncode == 0 and line, out.stderr[-500:]
         taichi_path, ours = line[0].split()[1:]
         assert os.path.abspath(taichi_path) == os.path.abspath(ours), env
+
+
+def test_taichi_s_own_arch_variable_is_refused_unless_it_names_the_arch_asked_for(tmp_path):
+    """ti.init takes TI_ARCH from the environment over the arch it is given, and aborts the
+    process on a name it does not know: with TI_ARCH=cuda exported, a run asked for on the
+    CPU would go to the GPU; with TI_ARCH=cpu it died of Taichi's assertion (session 74's
+    review). Now both are refused by name, before `tcd run` writes anything; TI_ARCH naming
+    this CPU is taken."""
+    import platform
+    host = "arm64" if platform.machine().lower() in ("arm64", "aarch64") else "x64"
+    out = run_init({"TI_ARCH": host})
+    assert out.returncode == 0, out.stderr[-800:]
+    for name, message in (("cuda", "TI_ARCH='cuda' would make Taichi run on cuda, not on the "
+                                   "arch asked for (cpu): unset TI_ARCH"),
+                          ("cpu", "TI_ARCH='cpu' is not an arch Taichi knows (x64, ")):
+        out = run_init({"TI_ARCH": name})
+        assert out.returncode == 1 and message in out.stderr, (name, out.returncode, out.stderr[-800:])
+        run = tmp_path / name
+        cli = subprocess.run([sys.executable, "-m", "tcd.cli", "run", str(ROOT / "scenarios" / "tiny.toml"),
+                              "--out", str(run)], capture_output=True, text=True, timeout=300,
+                             env={k: v for k, v in env_without_thread_settings(
+                                 PYTHONPATH=str(ROOT), TI_ARCH=name).items() if v is not None})
+        assert cli.returncode != 0 and message in cli.stderr, (name, cli.returncode, cli.stderr[-800:])
+        assert "Traceback" not in cli.stderr and not run.exists()
+
+
+def test_a_process_without_home_runs(tmp_path):
+    """Taichi 1.7.4 aborts at its import when HOME is unset (a cron job, a service, `env -i`):
+    `import tcd` now sets it from the password database first (session 74's review)."""
+    out = run_init({"HOME": None, "TI_OFFLINE_CACHE_FILE_PATH": str(tmp_path / "cache")},
+                   f"tcd.init('cpu', 'f64')\n{SCAN}")
+    assert out.returncode == 0, (out.returncode, out.stderr[-800:])
+    assert "total 28" in out.stdout
