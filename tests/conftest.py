@@ -17,6 +17,7 @@ Taichi without its own IR optimisations (TI_ADVANCED_OPTIMIZATION=0), unless tho
 the same numbers as the defaults, a fraction of the compile time (see pytest_configure).
 """
 import os
+import pathlib
 
 # Taichi, imported with pytest capturing stdout, sends every kernel's print buffer through
 # Python after every launch (taichi/lang/shell.py; 2 % of a profiled tests/test_engine.py);
@@ -127,9 +128,12 @@ def default_stop_signals() -> None:
     from (session 74: the closed terminal's test under `nohup`; session 72's Ctrl-C "lost"
     under load was a suite started in the background)."""
     import signal
-    for signum in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
-        if signum is not None:
-            signal.signal(signum, signal.SIG_DFL)
+    signums = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
+               if s is not None]
+    for signum in signums:
+        signal.signal(signum, signal.SIG_DFL)
+    if hasattr(signal, "pthread_sigmask"):      # a blocked signal is inherited too
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, signums)
 
 
 def env_without_thread_settings(**extra) -> dict:
@@ -203,6 +207,12 @@ _FIRST = ("test_precision_f32.py", "test_twin.py")
 
 
 def pytest_configure(config):
+    # the processes the tests start import this checkout's tcd too (pyproject's pythonpath
+    # covers this process only)
+    root = str(pathlib.Path(__file__).resolve().parents[1])
+    paths = os.environ.get("PYTHONPATH", "")
+    if root not in paths.split(os.pathsep):
+        os.environ["PYTHONPATH"] = root + (os.pathsep + paths if paths else "")
     if not (os.environ.get("TCD_CPU_THREADS") or os.environ.get("TCD_PARALLEL_LOOPS")):
         os.environ["TCD_CPU_THREADS"] = "1"
     cpu = config.getoption("--arch") == "cpu"

@@ -682,7 +682,11 @@ def test_atomic_write_fsyncs_the_new_content_before_renaming_it(tmp_path, monkey
 
 
 # io.py atomic_path: the result keeps the mode of the file it replaces (umask for a new one)
-def test_atomic_write_gives_the_result_the_replaced_file_s_mode_or_the_umask_s(tmp_path):
+def test_atomic_write_gives_the_result_the_replaced_file_s_mode_or_the_umask_s(tmp_path,
+                                                                              monkeypatch):
+    # io reads the umask once, at its import: whatever the caller's (002 for a user of
+    # Debian or Ubuntu, 077 on a hardened machine), 022 here for both
+    monkeypatch.setattr(io, "_umask", 0o022)
     old = os.umask(0o022)
     try:
         target = tmp_path / "summary.json"

@@ -18,8 +18,11 @@ def test_engine_and_bond_physics_pass_in_f32(precision):
         pytest.skip("already running in f32")
     cmd = [sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", "-n", "0",
            "--precision", "f32", "tests/test_laws.py", "tests/test_engine.py", "tests/test_bonds.py"]
+    # not the caller's PYTEST_ADDOPTS (a -k, -p no:xdist or --cache-clear of theirs would
+    # empty or break this run)
+    env = {k: v for k, v in os.environ.items() if k != "PYTEST_ADDOPTS"}
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1200,
-                         env={**os.environ, "TI_LOG_LEVEL": "warn"})
+                         env={**env, "TI_LOG_LEVEL": "warn"})
     tail = (out.stdout + out.stderr)[-6000:]
     assert out.returncode == 0, f"f32 physics tests failed:\n{tail}"
     counts = summary_counts(out.stdout)
