@@ -75,7 +75,12 @@ def test_pour_reports_its_phases_and_writes_a_step_trace(tmp_path, on_backend):
     out = bench.pour(particles=60, time=0.02, trace=str(trace), **on_backend)
     ph = out["phases"]
     assert len(ph) == 10 and sum(p["steps"] for p in ph) == out["steps"] - 2 == 98
-    assert sum(p["wall_s"] for p in ph) == pytest.approx(out["loop_wall_s"], rel=0.05)
+    # the phases' wall time is the timed steps' (the trace's rows; each phase rounded to 1 us),
+    # within the loop's own (which adds the Python between two steps: on a loaded machine a
+    # wait there is not a step's)
+    step_walls = [float(r["wall_s"]) for r in csv.DictReader(open(trace))]
+    assert sum(p["wall_s"] for p in ph) == pytest.approx(sum(step_walls), abs=1e-5)
+    assert sum(step_walls) <= out["loop_wall_s"] * (1 + 1e-6)
     assert sum(p["wall_share"] for p in ph) == pytest.approx(1.0, abs=1e-3)
     rows = list(csv.DictReader(open(trace)))
     assert out["trace"] == str(trace) and len(rows) == 98

@@ -1436,7 +1436,8 @@ def test_orphaned_workers_finish_their_samples_and_end(micro_run, tmp_path):
     assert a["tau_peak_MPa"] == b["tau_peak_MPa"]
 
 
-@pytest.mark.skipif(not pathlib.Path("/proc/self/task").exists(), reason="needs /proc")
+@pytest.mark.skipif(not pathlib.Path(f"/proc/self/task/{os.getpid()}/children").exists(),
+                    reason="needs /proc/PID/task/PID/children (CONFIG_PROC_CHILDREN)")
 # (SIGINT to the whole process group, as a Ctrl-C: out of the suite from session 72, when
 # once a run ran on to its end; that suite had been started in the background, so its
 # children started with SIGINT ignored, and tcd rightly kept ignoring it. The child's stop
