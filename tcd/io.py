@@ -149,6 +149,20 @@ _umask = os.umask(0)
 os.umask(_umask)
 
 
+def _current_umask() -> int:
+    """The process's umask now (Linux: /proc/self/status, read without changing it), else
+    the one it had when this module was imported (setting it to read it would race with
+    other threads' file creation)."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return _umask
+
+
 # --- atomic writes ---------------------------------------------------------------------------
 @contextlib.contextmanager
 def atomic_path(path, suffix: str = ".tmp"):
@@ -175,7 +189,7 @@ def atomic_path(path, suffix: str = ".tmp"):
         try:
             mode = os.stat(target).st_mode & 0o7777
         except FileNotFoundError:
-            mode = 0o666 & ~_umask
+            mode = 0o666 & ~_current_umask()
         os.chmod(tmp, mode)
         _fsync_file(tmp)
         os.replace(tmp, target)

@@ -2,6 +2,7 @@
 import csv
 import json
 import os
+import pathlib
 import random
 import re
 import signal
@@ -684,11 +685,16 @@ def test_atomic_write_fsyncs_the_new_content_before_renaming_it(tmp_path, monkey
 # io.py atomic_path: the result keeps the mode of the file it replaces (umask for a new one)
 def test_atomic_write_gives_the_result_the_replaced_file_s_mode_or_the_umask_s(tmp_path,
                                                                               monkeypatch):
-    # io reads the umask once, at its import: whatever the caller's (002 for a user of
-    # Debian or Ubuntu, 077 on a hardened machine), 022 here for both
-    monkeypatch.setattr(io, "_umask", 0o022)
-    old = os.umask(0o022)
+    """The umask at the time of the write, not the caller's when tcd was imported (002 for a
+    user of Debian or Ubuntu, 077 on a hardened machine: session 74's review)."""
+    if not pathlib.Path("/proc/self/status").exists():  # elsewhere: the umask at import
+        monkeypatch.setattr(io, "_umask", 0o022)
+    old = os.umask(0o077)
     try:
+        io.write_json(tmp_path / "private.json", {"a": 0})
+        if pathlib.Path("/proc/self/status").exists():
+            assert stat.S_IMODE(os.stat(tmp_path / "private.json").st_mode) == 0o600
+        os.umask(0o022)
         target = tmp_path / "summary.json"
         io.write_json(target, {"a": 1})                  # mkstemp alone would give 0o600
         assert stat.S_IMODE(os.stat(target).st_mode) == 0o644
