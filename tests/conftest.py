@@ -18,6 +18,7 @@ the same numbers as the defaults, a fraction of the compile time (see pytest_con
 """
 import os
 import pathlib
+import signal
 
 # Taichi, imported with pytest capturing stdout, sends every kernel's print buffer through
 # Python after every launch (taichi/lang/shell.py; 2 % of a profiled tests/test_engine.py);
@@ -27,6 +28,7 @@ os.environ.setdefault("TI_ENABLE_PYBUF", "0")
 import pytest  # noqa: E402
 
 import tcd  # noqa: E402
+from tcd.signals import STOP_SIGNALS  # noqa: E402  (stdlib only; imported here, not after a fork)
 
 # read by ti.init (Taichi takes any of its settings from TI_<NAME>)
 ADVANCED_OPTIMIZATION_ENV = "TI_ADVANCED_OPTIMIZATION"
@@ -127,13 +129,10 @@ def default_stop_signals() -> None:
     its end, as it should, and the test failed because of the shell the suite was started
     from (session 74: the closed terminal's test under `nohup`; session 72's Ctrl-C "lost"
     under load was a suite started in the background)."""
-    import signal
-    signums = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
-               if s is not None]
-    for signum in signums:
+    for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_DFL)
     if hasattr(signal, "pthread_sigmask"):      # a blocked signal is inherited too
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, signums)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 def env_without_thread_settings(**extra) -> dict:

@@ -687,12 +687,13 @@ def test_atomic_write_gives_the_result_the_replaced_file_s_mode_or_the_umask_s(t
                                                                               monkeypatch):
     """The umask at the time of the write, not the caller's when tcd was imported (002 for a
     user of Debian or Ubuntu, 077 on a hardened machine: session 74's review)."""
-    if not pathlib.Path("/proc/self/status").exists():  # elsewhere: the umask at import
+    live = pathlib.Path("/proc/self/status").exists()
+    if not live:                                        # elsewhere: the umask at import
         monkeypatch.setattr(io, "_umask", 0o022)
     old = os.umask(0o077)
     try:
         io.write_json(tmp_path / "private.json", {"a": 0})
-        if pathlib.Path("/proc/self/status").exists():
+        if live:
             assert stat.S_IMODE(os.stat(tmp_path / "private.json").st_mode) == 0o600
         os.umask(0o022)
         target = tmp_path / "summary.json"
